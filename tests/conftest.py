@@ -1,0 +1,36 @@
+"""Shared fixtures: the shipped coil system, reference maps and models (loaded once)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magrun.field.coils import CoilSystem
+from magrun.field.lut import LookupTableFieldModel
+from magrun.field.reference import ReferenceMaps
+from magrun.field.zernike import ZernikeFieldModel
+
+
+@pytest.fixture(scope="session")
+def coils() -> CoilSystem:
+    return CoilSystem.load()
+
+
+@pytest.fixture(scope="session")
+def reference() -> ReferenceMaps:
+    return ReferenceMaps.load()
+
+
+@pytest.fixture(scope="session")
+def zernike_model() -> ZernikeFieldModel:
+    return ZernikeFieldModel.load()
+
+
+@pytest.fixture(scope="session")
+def lut_model(coils: CoilSystem, reference: ReferenceMaps) -> LookupTableFieldModel:
+    return LookupTableFieldModel(coils, reference)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20261121)

@@ -1,0 +1,134 @@
+"""The ``magrun field`` verbs, in process (click's runner) and once as the installed script."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from magrun.cli import cli
+from magrun.field.comsol import write_comsol_map
+from magrun.field.reference import ReferenceMaps
+from magrun.field.zernike import ZernikeFieldModel
+
+
+@pytest.fixture
+def runner() -> CliRunner:
+    return CliRunner()
+
+
+def test_fit_json_reports_mae_and_r2_per_coil_and_order(runner: CliRunner, tmp_path) -> None:
+    result = runner.invoke(
+        cli, ["field", "fit", "--out", str(tmp_path), "--max-order", "6", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert set(report["coil_types"]) == {"small", "medium", "large"}
+    for rep in report["coil_types"].values():
+        assert [o["order"] for o in rep["orders"]] == [1, 2, 3, 4, 5, 6]
+        r2 = [o["r2"] for o in rep["orders"]]
+        # nested least-squares models: more terms never explain less variance
+        assert all(np.diff(r2) >= -1e-12)
+        assert all(o["mae_mT"] > 0 for o in rep["orders"])
+        assert 1 <= rep["selected_order"] <= 6
+    model = ZernikeFieldModel.load(report["files"]["model"])
+    assert {t: f.order for t, f in model.fits.items()} == {
+        t: r["selected_order"] for t, r in report["coil_types"].items()
+    }
+    with np.load(report["files"]["figure"]) as fig:
+        assert fig["small_field_mT"].shape == fig["small_error_mT"].shape == (101, 101)
+
+
+def test_fit_with_fixed_orders(runner: CliRunner, tmp_path) -> None:
+    result = runner.invoke(
+        cli,
+        [
+            "field",
+            "fit",
+            "--out",
+            str(tmp_path),
+            "--max-order",
+            "5",
+            "--order",
+            "small=4",
+            "--order",
+            "medium=3",
+            "--order",
+            "large=3",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "small: selected order 4 (fixed)" in result.output
+    model = ZernikeFieldModel.load(tmp_path / "zernike_model.json")
+    assert {t: f.order for t, f in model.fits.items()} == {"small": 4, "medium": 3, "large": 3}
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--order", "small"], "TYPE=N"),
+        (["--order", "tiny=3"], "unknown coil types ['tiny']"),
+        (["--order", "small=9", "--max-order", "4"], "outside 1..4"),
+    ],
+)
+def test_fit_bad_options_exit_2_without_traceback(
+    runner: CliRunner, tmp_path, args, message
+) -> None:
+    result = runner.invoke(cli, ["field", "fit", "--out", str(tmp_path), *args])
+    assert result.exit_code == 2
+    assert message in result.output
+    assert "Traceback" not in result.output
+
+
+def test_reference_command_writes_loadable_maps(runner: CliRunner, tmp_path) -> None:
+    out = tmp_path / "maps.npz"
+    result = runner.invoke(cli, ["field", "reference", "--out", str(out), "--pitch-mm", "10"])
+    assert result.exit_code == 0, result.output
+    maps = ReferenceMaps.load(out)
+    assert maps["small"].B.shape == (11, 11, 2)
+    assert maps.meta["pitch_m"] == pytest.approx(0.01)
+
+
+def test_import_comsol_then_fit(runner: CliRunner, tmp_path, reference: ReferenceMaps) -> None:
+    args = []
+    for name in ("small", "large"):
+        coarse = reference[name]
+        write_comsol_map(tmp_path / f"{name}.txt", coarse, length_unit="mm", field_unit="mT")
+        args += [f"--{name}", str(tmp_path / f"{name}.txt")]
+    result = runner.invoke(cli, ["field", "import-comsol", *args, "--out", str(tmp_path / "m.npz")])
+    assert result.exit_code == 0, result.output
+    imported = ReferenceMaps.load(tmp_path / "m.npz")
+    np.testing.assert_allclose(imported["small"].B, reference["small"].B, rtol=1e-12, atol=1e-20)
+
+
+def test_import_comsol_bad_file_exits_2_naming_file_and_line(runner: CliRunner, tmp_path) -> None:
+    bad = tmp_path / "small.txt"
+    bad.write_text("% x y mf.Bx (T) mf.By (T)\n0 0 1e-3 oops\n")
+    result = runner.invoke(
+        cli,
+        [
+            "field",
+            "import-comsol",
+            "--small",
+            str(bad),
+            "--large",
+            str(bad),
+            "--out",
+            str(tmp_path / "m.npz"),
+        ],
+    )
+    assert result.exit_code == 2
+    assert f"{bad}:2: 'oops' is not a number" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_installed_console_script() -> None:
+    exe = shutil.which("magrun")
+    assert exe is not None, "the magrun console script is not installed"
+    out = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "magrun, version 0.1.0"
