@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -128,7 +130,9 @@ def test_import_comsol_bad_file_exits_2_naming_file_and_line(runner: CliRunner, 
 
 
 def test_installed_console_script() -> None:
-    exe = shutil.which("magrun")
+    # the script sits beside the interpreter of the environment it was installed into
+    beside = Path(sys.executable).with_name("magrun")
+    exe = str(beside) if beside.exists() else shutil.which("magrun")
     assert exe is not None, "the magrun console script is not installed"
     out = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "magrun, version 0.1.0"
