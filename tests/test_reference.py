@@ -156,3 +156,11 @@ def test_field_map_validates_shapes() -> None:
         FieldMap(x=x[::-1], y=x, B=np.zeros((3, 3, 2)), dB=np.zeros((3, 3, 2, 2)))
     with pytest.raises(ValueError, match="non-finite"):
         FieldMap(x=x, y=x, B=np.full((3, 3, 2), np.nan), dB=np.zeros((3, 3, 2, 2)))
+
+
+def test_truncated_map_file_is_a_clear_error(tmp_path, reference: ReferenceMaps) -> None:
+    reference.save(tmp_path / "full.npz")
+    data = (tmp_path / "full.npz").read_bytes()
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"cut\.npz: not a readable magrun reference-map file"):
+        ReferenceMaps.load(tmp_path / "cut.npz")

@@ -196,7 +196,7 @@ def fit_reference(
         figure[f"{coil_type}_orders"] = np.array([s.order for s in scores], dtype=np.float64)
         figure[f"{coil_type}_mae_mT"] = np.array([s.mae * 1e3 for s in scores])
         figure[f"{coil_type}_r2"] = np.array([s.r2 for s in scores])
-    # Zernike fits only the driven types are needed for control, but all are kept and reported
+    # control needs only the driven types; every type is fitted and kept, as in the paper
     model = ZernikeFieldModel(coils, fits)
     return FitResult(model=model, report=report, figure=figure)
 

@@ -12,6 +12,7 @@ the whole workspace, so only infeasible iterates of an optimiser ever go there.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import casadi as ca
@@ -52,7 +53,7 @@ class LookupTableFieldModel(PlanarFieldModel):
 
     @classmethod
     def load(
-        cls, coils: CoilSystem | None = None, path: str | None = None
+        cls, coils: CoilSystem | None = None, path: str | Path | None = None
     ) -> LookupTableFieldModel:
         """The model on the shipped reference maps (or ``path``) for ``coils`` (default rig)."""
         return cls(coils or CoilSystem.load(), ReferenceMaps.load(path))

@@ -35,6 +35,14 @@ class PlanarFieldModel(ABC):
 
     def __init__(self, coils: CoilSystem) -> None:
         self.coils = coils
+        # channels grouped by coil type, so each type's map is evaluated once per call
+        by_type: dict[str, list[int]] = {}
+        for i, ch in enumerate(coils.channels):
+            by_type.setdefault(ch.coil_type, []).append(i)
+        self._groups = [
+            (coil_type, idx, np.stack([coils.channels[i].rotation for i in idx]))
+            for coil_type, idx in by_type.items()
+        ]
 
     # -- what a concrete model provides ------------------------------------------------------
 
@@ -92,21 +100,17 @@ class PlanarFieldModel(ABC):
             raise ValueError(f"positions must have shape (..., 2), got {p.shape}")
         lead = p.shape[:-1]
         flat = p.reshape(-1, 2)
-        n, channels = flat.shape[0], self.coils.channels
-        B = np.empty((n, len(channels), 2))
-        G = np.empty((n, len(channels), 2, 2))
-        by_type: dict[str, list[int]] = {}
-        for i, ch in enumerate(channels):
-            by_type.setdefault(ch.coil_type, []).append(i)
-        for coil_type, idx in by_type.items():
-            rots = np.stack([channels[i].rotation for i in idx])  # (k, 2, 2)
+        n, n_ch = flat.shape[0], self.coils.n_channels
+        B = np.empty((n, n_ch, 2))
+        G = np.empty((n, n_ch, 2, 2))
+        for coil_type, idx, rots in self._groups:
             q = np.einsum("nj,kji->kni", flat, rots)  # R_cᵀ p for every channel of this type
             Bl, Gl = self.type_field(coil_type, q.reshape(-1, 2))
             Bl = Bl.reshape(len(idx), n, 2)
             Gl = Gl.reshape(len(idx), n, 2, 2)
             B[:, idx] = np.einsum("kij,knj->nki", rots, Bl)
             G[:, idx] = np.einsum("kia,knab,kjb->nkij", rots, Gl, rots)
-        return B.reshape(*lead, len(channels), 2), G.reshape(*lead, len(channels), 2, 2)
+        return B.reshape(*lead, n_ch, 2), G.reshape(*lead, n_ch, 2, 2)
 
     def unit_field(self, positions: ArrayLike) -> FloatArray:
         """Field of every channel at 1 A, shape (..., n_channels, 2), T/A."""

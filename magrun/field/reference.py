@@ -27,6 +27,7 @@ round-off are both below 1e-8 relative at the scale lengths (mm) of these coils.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -117,7 +118,8 @@ class ReferenceMaps:
         if path is None:
             path = default_reference_path()
         try:
-            with np.load(path, allow_pickle=False) as data:
+            # open the file ourselves: np.load leaks its handle on a corrupt archive
+            with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
                 meta = json.loads(str(data["meta"]))
                 names = sorted({k.split(".")[0] for k in data.files if k != "meta"})
                 maps = {
@@ -126,7 +128,7 @@ class ReferenceMaps:
                     )
                     for n in names
                 }
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable magrun reference-map file: {exc}") from exc
         return cls(maps=maps, meta=meta)
 
