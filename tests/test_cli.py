@@ -136,3 +136,36 @@ def test_installed_console_script() -> None:
     assert exe is not None, "the magrun console script is not installed"
     out = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "magrun, version 0.1.0"
+
+
+def test_fit_refuses_maps_made_for_another_coil_system(runner: CliRunner, tmp_path) -> None:
+    from importlib import resources
+
+    text = (resources.files("magrun.field") / "data" / "coils.yaml").read_text()
+    other = tmp_path / "other.yaml"
+    other.write_text(text.replace("turns: 90", "turns: 120"))
+    result = runner.invoke(cli, ["field", "fit", "--coils", str(other), "--out", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "made for another coil system" in result.output
+    # maps made for that system are accepted
+    maps = tmp_path / "other.npz"
+    made = runner.invoke(
+        cli, ["field", "reference", "--coils", str(other), "--out", str(maps), "--pitch-mm", "5"]
+    )
+    assert made.exit_code == 0, made.output
+    fitted = runner.invoke(
+        cli,
+        [
+            "field",
+            "fit",
+            "--coils",
+            str(other),
+            "--reference",
+            str(maps),
+            "--max-order",
+            "3",
+            "--out",
+            str(tmp_path / "fit"),
+        ],
+    )
+    assert fitted.exit_code == 0, fitted.output

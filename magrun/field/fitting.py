@@ -142,6 +142,13 @@ def fit_reference(
         raise ValueError(f"--order names unknown coil types {sorted(unknown)}")
     if max_order < 1:
         raise ValueError("max_order must be >= 1")
+    made_for = reference.meta.get("coils")
+    if made_for is not None and made_for != coils.spec.model_dump(mode="json"):
+        raise ValueError(
+            f"the reference maps were made for another coil system than {coils.source}; "
+            "regenerate them with 'magrun field reference --coils ...' (or import them with "
+            "'magrun field import-comsol --coils ...')"
+        )
 
     fits: dict[str, ZernikeCoilFit] = {}
     report: dict[str, Any] = {
