@@ -171,11 +171,20 @@ def basis_gradient(x: ArrayLike, y: ArrayLike, order: int) -> NDArray[np.float64
         ``[..., k, 0] = ∂Z_k/∂x`` and ``[..., k, 1] = ∂Z_k/∂y`` in normalised coordinates
         (divide by the disk radius for physical units).
     """
+    return basis_and_gradient(x, y, order)[1]
+
+
+def basis_and_gradient(
+    x: ArrayLike, y: ArrayLike, order: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`basis` and :func:`basis_gradient` from one pass over the terms."""
     xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-    _, ddx, ddy = generic_terms(xa, ya, order, gradient=True)
-    gx = np.stack([np.broadcast_to(v, xa.shape) for v in ddx], axis=-1)
-    gy = np.stack([np.broadcast_to(v, xa.shape) for v in ddy], axis=-1)
-    return np.stack([gx, gy], axis=-1)
+    vals, ddx, ddy = generic_terms(xa, ya, order, gradient=True)
+
+    def stack(terms: list[Any]) -> NDArray[np.float64]:
+        return np.stack([np.broadcast_to(v, xa.shape) for v in terms], axis=-1)
+
+    return stack(vals), np.stack([stack(ddx), stack(ddy)], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -261,8 +270,9 @@ class ZernikeCoilFit:
     def evaluate(self, q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Field (n, 2) in T/A and gradient (n, 2, 2) in T/(m A) at base-frame points (n, 2)."""
         u, v = self.normalise(q)
-        B = basis(u, v, self.order) @ self.coefficients
-        G = np.einsum("ntl,tk->nkl", basis_gradient(u, v, self.order), self.coefficients)
+        Z, dZ = basis_and_gradient(u, v, self.order)
+        B = Z @ self.coefficients
+        G = np.einsum("ntl,tk->nkl", dZ, self.coefficients)
         return B, G / self.disk_radius
 
     def evaluate_casadi(self, qx: Any, qy: Any) -> tuple[list[Any], list[list[Any]]]:
