@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,7 +57,7 @@ class OrderScore:
 def _score(
     fit: ZernikeCoilFit, points: NDArray[np.float64], B: NDArray[np.float64], cond: float
 ) -> OrderScore:
-    Bf, _ = fit.evaluate(points)
+    Bf = fit.field(points)
     err = np.linalg.norm(Bf - B, axis=1)
     r2 = 1.0 - float(np.sum((Bf - B) ** 2) / np.sum((B - B.mean(axis=0)) ** 2))
     return OrderScore(
@@ -66,9 +66,9 @@ def _score(
 
 
 def fit_coil_type(
-    coils: CoilSystem, reference: ReferenceMaps, coil_type: str, order: int
-) -> tuple[ZernikeCoilFit, float]:
-    """Least-squares fit of one coil type at one order; returns the fit and its condition number."""
+    coils: CoilSystem, reference: ReferenceMaps, coil_type: str, orders: Iterable[int]
+) -> dict[int, tuple[ZernikeCoilFit, float]]:
+    """Least-squares fits of one coil type, order → (fit, condition number of the design)."""
     spec, fmap = coils.coil_types[coil_type], reference[coil_type]
     pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
     center = (0.0, spec.center)
@@ -79,11 +79,12 @@ def fit_coil_type(
             f"{coil_type}: reference points lie outside the Zernike disk of radius "
             f"{spec.disk_radius_mm} mm; enlarge disk_radius_mm or crop the map"
         )
-    lsq = zernike.fit(u, v, B, order)
-    return (
-        ZernikeCoilFit(coil_type, order, center, spec.disk_radius, lsq.coefficients),
-        lsq.condition_number,
-    )
+    out = {}
+    for order in orders:
+        lsq = zernike.fit(u, v, B, order)
+        fit = ZernikeCoilFit(coil_type, order, center, spec.disk_radius, lsq.coefficients)
+        out[order] = (fit, lsq.condition_number)
+    return out
 
 
 def select_order(scores: list[OrderScore], r2_saturation: float) -> int:
@@ -142,13 +143,7 @@ def fit_reference(
         raise ValueError(f"--order names unknown coil types {sorted(unknown)}")
     if max_order < 1:
         raise ValueError("max_order must be >= 1")
-    made_for = reference.meta.get("coils")
-    if made_for is not None and made_for != coils.spec.model_dump(mode="json"):
-        raise ValueError(
-            f"the reference maps were made for another coil system than {coils.source}; "
-            "regenerate them with 'magrun field reference --coils ...' (or import them with "
-            "'magrun field import-comsol --coils ...')"
-        )
+    reference.require_made_for(coils)
 
     fits: dict[str, ZernikeCoilFit] = {}
     report: dict[str, Any] = {
@@ -164,15 +159,13 @@ def fit_reference(
     for coil_type in coils.coil_types:
         fmap = reference[coil_type]
         pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
-        scores, by_order = [], {}
-        for order in range(1, max_order + 1):
-            fit, cond = fit_coil_type(coils, reference, coil_type, order)
-            by_order[order] = fit
-            scores.append(_score(fit, pts, B, cond))
+        by_order = fit_coil_type(coils, reference, coil_type, range(1, max_order + 1))
+        scores = [_score(fit, pts, B, cond) for fit, cond in by_order.values()]
         chosen = fixed.get(coil_type, select_order(scores, r2_saturation))
         if chosen not in by_order:
             raise ValueError(f"{coil_type}: order {chosen} is outside 1..{max_order}")
-        fits[coil_type] = by_order[chosen]
+        fits[coil_type] = by_order[chosen][0]
+        Bf, Gf = fits[coil_type].evaluate(pts)
         report["coil_types"][coil_type] = {
             "selected_order": chosen,
             "selected_by": "fixed" if coil_type in fixed else "r2_saturation",
@@ -187,15 +180,8 @@ def fit_reference(
                 }
                 for s in scores
             ],
-            **_diagnostics(
-                fits[coil_type],
-                pts,
-                fmap.B.reshape(-1, 2),
-                fmap.dB.reshape(-1, 2, 2),
-                coils.max_current,
-            ),
+            **_diagnostics(Bf, Gf, pts, B, fmap.dB.reshape(-1, 2, 2), coils.max_current),
         }
-        Bf, _ = fits[coil_type].evaluate(pts)
         shape = fmap.B.shape[:2]
         figure[f"{coil_type}_field_mT"] = np.linalg.norm(fmap.B, axis=-1) * 1e3
         figure[f"{coil_type}_error_mT"] = np.linalg.norm(Bf - B, axis=1).reshape(shape) * 1e3
@@ -209,14 +195,17 @@ def fit_reference(
 
 
 def _diagnostics(
-    fit: ZernikeCoilFit,
+    Bf: NDArray[np.float64],
+    Gf: NDArray[np.float64],
     pts: NDArray[np.float64],
     B: NDArray[np.float64],
     G: NDArray[np.float64],
     max_current: float,
 ) -> dict[str, Any]:
-    """Error distribution, gradient accuracy, curl and in-plane divergence of one fit."""
-    Bf, Gf = fit.evaluate(pts)
+    """Error distribution, gradient accuracy, curl and in-plane divergence of one fit.
+
+    ``Bf`` (n, 2) and ``Gf`` (n, 2, 2) are the fit at ``pts``; ``B`` and ``G`` the reference.
+    """
     err = np.linalg.norm(Bf - B, axis=1)
     central = np.all(np.abs(pts) <= CENTRAL_HALF_WIDTH + 1e-12, axis=1)
 

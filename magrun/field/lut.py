@@ -37,6 +37,7 @@ class LookupTableFieldModel(PlanarFieldModel):
 
     def __init__(self, coils: CoilSystem, reference: ReferenceMaps) -> None:
         super().__init__(coils)
+        reference.require_made_for(coils)
         self.reference = reference
         self._numpy: dict[str, RegularGridInterpolator] = {}
         self._casadi: dict[str, ca.Function] = {}

@@ -146,14 +146,14 @@ class PlanarFieldModel(ABC):
         for c, ch in enumerate(self.coils.channels):
             R = ch.rotation
             # q = Rᵀ p, dropping the exact zeros of 90° rotations from the expression graph
-            qx = _dot((R[0, 0], R[1, 0]), (px, py))
-            qy = _dot((R[0, 1], R[1, 1]), (px, py))
+            qx = weighted_sum((R[0, 0], R[1, 0]), (px, py))
+            qy = weighted_sum((R[0, 1], R[1, 1]), (px, py))
             Bl, Gl = self.type_field_casadi(ch.coil_type, qx, qy)
             for k in range(2):
-                Bsum[k] = Bsum[k] + currents[c] * _dot(R[k], Bl)
+                Bsum[k] = Bsum[k] + currents[c] * weighted_sum(R[k], Bl)
                 for l in range(2):
                     # (R G Rᵀ)[k, l] = Σ_ab R[k, a] G[a, b] R[l, b]
-                    g = _dot(R[k], [_dot(R[l], Gl[a]) for a in range(2)])
+                    g = weighted_sum(R[k], [weighted_sum(R[l], Gl[a]) for a in range(2)])
                     Gsum[k][l] = Gsum[k][l] + currents[c] * g
         return ca.vertcat(*Bsum), ca.blockcat(Gsum)
 
@@ -165,7 +165,7 @@ class PlanarFieldModel(ABC):
         return ca.Function(name, [p, I], [B, G], ["p", "I"], ["B", "G"])
 
 
-def _dot(weights: Any, terms: Any) -> Expr:
+def weighted_sum(weights: Any, terms: Any) -> Expr:
     """Σ w·t over pairs with w ≠ 0, so exact zeros add nothing to a CasADi graph."""
     acc: Expr = 0
     for w, t in zip(weights, terms, strict=True):

@@ -102,6 +102,20 @@ class ReferenceMaps:
                 f"no reference map for coil type {coil_type!r} (have {sorted(self.maps)})"
             ) from None
 
+    def require_made_for(self, coils: CoilSystem) -> None:
+        """Raise ``ValueError`` if these maps record a coil system other than ``coils``.
+
+        Maps record the geometry they were computed (or imported) for in ``meta["coils"]``;
+        maps without that record are taken as they are.
+        """
+        made_for = self.meta.get("coils")
+        if made_for is not None and made_for != coils.spec.model_dump(mode="json"):
+            raise ValueError(
+                f"the reference maps were made for another coil system than {coils.source}; "
+                "regenerate them with 'magrun field reference --coils ...' (or import them with "
+                "'magrun field import-comsol --coils ...')"
+            )
+
     def save(self, path: str | Path) -> None:
         """Write an ``.npz`` file (arrays per coil type, metadata as JSON)."""
         arrays: dict[str, NDArray[Any]] = {

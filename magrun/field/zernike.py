@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from magrun import atomic
 from magrun.field.coils import CoilSystem, CoilSystemSpec
-from magrun.field.model import PlanarFieldModel
+from magrun.field.model import PlanarFieldModel, weighted_sum
 
 
 @dataclass(frozen=True)
@@ -157,9 +157,9 @@ def basis(x: ArrayLike, y: ArrayLike, order: int) -> NDArray[np.float64]:
     ndarray, shape (..., n_terms(order))
         Term values in fringe order.
     """
-    xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    xa, ya = _as_arrays(x, y)
     values, _, _ = generic_terms(xa, ya, order, gradient=False)
-    return np.stack([np.broadcast_to(v, xa.shape) for v in values], axis=-1)
+    return _stack_terms(values, xa.shape)
 
 
 def basis_gradient(x: ArrayLike, y: ArrayLike, order: int) -> NDArray[np.float64]:
@@ -178,13 +178,20 @@ def basis_and_gradient(
     x: ArrayLike, y: ArrayLike, order: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """:func:`basis` and :func:`basis_gradient` from one pass over the terms."""
-    xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    xa, ya = _as_arrays(x, y)
     vals, ddx, ddy = generic_terms(xa, ya, order, gradient=True)
+    gradient = np.stack([_stack_terms(ddx, xa.shape), _stack_terms(ddy, xa.shape)], axis=-1)
+    return _stack_terms(vals, xa.shape), gradient
 
-    def stack(terms: list[Any]) -> NDArray[np.float64]:
-        return np.stack([np.broadcast_to(v, xa.shape) for v in terms], axis=-1)
 
-    return stack(vals), np.stack([stack(ddx), stack(ddy)], axis=-1)
+def _as_arrays(x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    xa, ya = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    return xa, ya
+
+
+def _stack_terms(terms: list[Any], shape: tuple[int, ...]) -> NDArray[np.float64]:
+    # constant terms come back from generic_terms as Python numbers: broadcast them
+    return np.stack([np.broadcast_to(v, shape) for v in terms], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -267,6 +274,11 @@ class ZernikeCoilFit:
             q[..., 1] - self.center[1]
         ) / self.disk_radius
 
+    def field(self, q: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Field (n, 2) in T/A at base-frame points (n, 2)."""
+        u, v = self.normalise(q)
+        return basis(u, v, self.order) @ self.coefficients
+
     def evaluate(self, q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Field (n, 2) in T/A and gradient (n, 2, 2) in T/(m A) at base-frame points (n, 2)."""
         u, v = self.normalise(q)
@@ -280,19 +292,9 @@ class ZernikeCoilFit:
         v = (qy - self.center[1]) / self.disk_radius
         vals, ddx, ddy = generic_terms(u, v, self.order, gradient=True)
         coef = self.coefficients
-        B = [_weighted_sum(coef[:, k], vals) for k in range(2)]
-        G = [
-            [_weighted_sum(coef[:, k], d) / self.disk_radius for d in (ddx, ddy)] for k in range(2)
-        ]
+        B = [weighted_sum(coef[:, k], vals) for k in range(2)]
+        G = [[weighted_sum(coef[:, k], d) / self.disk_radius for d in (ddx, ddy)] for k in range(2)]
         return B, G
-
-
-def _weighted_sum(weights: NDArray[np.float64], terms: list[Any]) -> Any:
-    acc: Any = 0
-    for w, t in zip(weights, terms, strict=True):
-        if w != 0.0:
-            acc = acc + float(w) * t
-    return acc
 
 
 class ZernikeFieldModel(PlanarFieldModel):
