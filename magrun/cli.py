@@ -3,6 +3,8 @@
     magrun field reference --out recordings/field/reference_maps.npz
     magrun field fit --out recordings/field --json
     magrun field import-comsol --small s.txt --medium m.txt --large l.txt --out maps.npz
+    magrun track proposed baseline2 --json         # S-trajectory, perfect feedback, simulated rig
+    magrun bench nmpc --json                       # NMPC solve times, Zernike vs lookup table
 
 Bad input (a malformed file, an unknown option value) exits with status 2 and one message
 naming the file (and line where there is one); it never prints a traceback.
@@ -17,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 
 from magrun import __version__
 
@@ -237,6 +240,148 @@ def field_import_comsol(
     click.echo(
         f"wrote {out}: " + ", ".join(f"{k} {m.x.size} x {m.y.size}" for k, m in maps.maps.items())
     )
+
+
+def _progress(label: str, enabled: bool) -> Any:
+    """A stderr progress bar (hidden with --json or when stderr is not a terminal)."""
+    return click.progressbar(
+        length=1, label=label, file=sys.stderr if enabled else None, show_eta=True
+    )
+
+
+@cli.command("track")
+@click.argument("methods", nargs=-1)
+@click.option("--robot", default="magnet", show_default=True, help="Robot in robots.yaml.")
+@click.option("--seed", default=0, show_default=True, help="Seed of the plant's parameter draw.")
+@click.option(
+    "--duration", type=float, default=None, help="Seconds to run [default: the trajectory + 1 s]."
+)
+@click.option("--speed-mm-s", default=3.0, show_default=True, help="Speed along the S, mm/s.")
+@click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object.")
+def track(
+    methods: tuple[str, ...],
+    robot: str,
+    seed: int,
+    duration: float | None,
+    speed_mm_s: float,
+    as_json: bool,
+) -> None:
+    """Track the paper's 43 x 43 mm S-trajectory on the simulated rig with perfect feedback.
+
+    Runs each METHOD (default: all six) closed loop at 25 Hz with the exact pose every tick,
+    and prints RMS tracking and one-step prediction errors and solve times.
+    """
+    from magrun.control.methods import METHODS, make_controller
+    from magrun.loop import run_trial
+    from magrun.rigs.sim import SimRig
+    from magrun.scene import s_trajectory
+
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise InputError(
+            f"unknown method(s) {', '.join(unknown)}; choose from {', '.join(METHODS)}"
+        )
+    if speed_mm_s <= 0:
+        raise InputError("--speed-mm-s must be positive")
+    reference = s_trajectory(speed=speed_mm_s * 1e-3)
+    results = []
+    for method in methods or METHODS:
+        try:
+            controller = make_controller(method, robot)
+            rig = SimRig.default(robot=robot, seed=seed)
+        except KeyError as exc:
+            raise InputError(str(exc).strip("'\"")) from exc
+        with _progress(f"{method:>9}", not as_json and sys.stderr.isatty()) as bar:
+
+            def tick(k: int, n: int, bar: Any = bar) -> None:
+                bar.length = n
+                bar.update(1)
+
+            t0 = time.perf_counter()
+            log = run_trial(controller, rig, reference, duration=duration, progress=tick)
+            wall = time.perf_counter() - t0
+        solve = log.solve_times
+        row = {
+            "method": method,
+            "ticks": len(log.t),
+            "rms_position_mm": log.rms_position_mm,
+            "rms_orientation_deg": log.rms_orientation_deg,
+            "rms_prediction_position_mm": log.rms_prediction_position_mm,
+            "rms_prediction_orientation_deg": log.rms_prediction_orientation_deg,
+            "median_solve_ms": float(np.median(solve) * 1e3),
+            "p90_solve_ms": float(np.percentile(solve, 90) * 1e3),
+            "failed_solves": sum(not s.success for s in log.status),
+            "max_abs_current_a": float(np.abs(log.currents).max()),
+            "wall_s": wall,
+        }
+        results.append(row)
+        if not as_json:
+            click.echo(
+                f"{method:>9}: RMS {row['rms_position_mm']:.3f} mm"
+                f" {row['rms_orientation_deg']:.2f}°"
+                f"  prediction {row['rms_prediction_position_mm']:.3f} mm"
+                f" {row['rms_prediction_orientation_deg']:.2f}°"
+                f"  solve median {row['median_solve_ms']:.1f} ms"
+                f"  failed {row['failed_solves']}/{row['ticks']}"
+            )
+    if as_json:
+        doc = {"robot": robot, "seed": seed, "speed_mm_s": speed_mm_s, "feedback": "perfect, 25 Hz"}
+        click.echo(json.dumps({**doc, "results": results}))
+
+
+@cli.group()
+def bench() -> None:
+    """Benchmarks; --json prints one JSON object."""
+
+
+@bench.command("nmpc")
+@click.option("--ticks", default=60, show_default=True, help="Closed-loop ticks per model.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_nmpc(ticks: int, as_json: bool) -> None:
+    """NMPC solve time on the Zernike model (proposed) and the lookup tables (Baseline 5).
+
+    Both run the first TICKS ticks of the S-trajectory closed loop on the simulated rig, one
+    after the other in this process; the figures are per-solve wall times.
+    """
+    from magrun.control.methods import make_controller
+    from magrun.loop import run_trial
+    from magrun.rigs.sim import SimRig
+    from magrun.scene import s_trajectory
+
+    if ticks < 2:
+        raise InputError("--ticks must be at least 2")
+    out: dict[str, Any] = {"ticks": ticks, "horizon": 20, "dt_s": 0.04}
+    for method, model in (("proposed", "zernike"), ("baseline5", "lookup_table")):
+        t0 = time.perf_counter()
+        controller = make_controller(method)
+        build = time.perf_counter() - t0
+        log = run_trial(controller, SimRig.default(seed=0), s_trajectory(), duration=ticks * 0.04)
+        solve = log.solve_times[1:]  # the first solve starts cold
+        out[model] = {
+            "method": method,
+            "build_s": build,
+            "median_solve_ms": float(np.median(solve) * 1e3),
+            "p90_solve_ms": float(np.percentile(solve, 90) * 1e3),
+            "max_solve_ms": float(np.max(solve) * 1e3),
+            "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
+            "failed_solves": sum(not s.success for s in log.status),
+            "achievable_rate_hz": float(1.0 / np.median(solve)),
+        }
+    out["ratio_lookup_table_to_zernike"] = (
+        out["lookup_table"]["median_solve_ms"] / out["zernike"]["median_solve_ms"]
+    )
+    if as_json:
+        click.echo(json.dumps(out))
+    else:
+        for model in ("zernike", "lookup_table"):
+            r = out[model]
+            click.echo(
+                f"{model:>12}: median {r['median_solve_ms']:.1f} ms,"
+                f" p90 {r['p90_solve_ms']:.1f} ms,"
+                f" {r['median_iterations']:.0f} iterations, {r['achievable_rate_hz']:.1f} Hz,"
+                f" build {r['build_s']:.1f} s"
+            )
+        click.echo(f"lookup table / Zernike: {out['ratio_lookup_table_to_zernike']:.2f}")
 
 
 def main() -> None:

@@ -95,6 +95,7 @@ class CoilSystemSpec(BaseModel):
 
     workspace_half_width_mm: float = Field(gt=0)
     max_current_a: float = Field(gt=0)
+    max_slew_rate_a_per_s: float = Field(gt=0)
     stacks: tuple[StackSpec, ...] = Field(min_length=1)
     driven_types: tuple[str, ...] = Field(min_length=1)
     coil_types: dict[str, CoilTypeSpec]
@@ -112,6 +113,10 @@ class CoilSystemSpec(BaseModel):
             if ct.center_mm - ct.length_mm / 2 <= half:
                 raise ValueError(f"coil type {name!r} reaches into the workspace")
         return self
+
+    def geometry(self) -> dict[str, object]:
+        """The document without the drive limits: what a field map depends on (JSON types)."""
+        return self.model_dump(mode="json", exclude={"max_current_a", "max_slew_rate_a_per_s"})
 
 
 def rotation_matrix(angle: float) -> NDArray[np.float64]:
@@ -185,6 +190,11 @@ class CoilSystem:
     def max_current(self) -> float:
         """Per-coil current limit, A."""
         return self.spec.max_current_a
+
+    @property
+    def max_slew_rate(self) -> float:
+        """Per-coil current slew limit of the amplifiers, A/s."""
+        return self.spec.max_slew_rate_a_per_s
 
     @cached_property
     def channels(self) -> tuple[Channel, ...]:

@@ -105,11 +105,16 @@ class ReferenceMaps:
     def require_made_for(self, coils: CoilSystem) -> None:
         """Raise ``ValueError`` if these maps record a coil system other than ``coils``.
 
-        Maps record the geometry they were computed (or imported) for in ``meta["coils"]``;
-        maps without that record are taken as they are.
+        Maps record the coil system they were computed (or imported) for in ``meta["coils"]``;
+        only its geometry is compared (drive limits do not change a unit-current map). Maps
+        without that record are taken as they are.
         """
         made_for = self.meta.get("coils")
-        if made_for is not None and made_for != coils.spec.model_dump(mode="json"):
+        limits = ("max_current_a", "max_slew_rate_a_per_s")
+        if (
+            made_for is not None
+            and {k: v for k, v in made_for.items() if k not in limits} != coils.spec.geometry()
+        ):
             raise ValueError(
                 f"the reference maps were made for another coil system than {coils.source}; "
                 "regenerate them with 'magrun field reference --coils ...' (or import them with "

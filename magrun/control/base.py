@@ -1,0 +1,179 @@
+"""The interface the six control methods share.
+
+A :class:`Controller` is an estimator and a planner behind one ``step``::
+
+    measured pose or None ─► Estimator(measured, last prediction) ─► pose estimate
+        velocity = (estimate − previous estimate) / Δt
+    [estimate, velocity], reference window, previous currents ─► Planner ─► currents, prediction
+        safety: clamp_currents (|I| ≤ I_max, |ΔI| ≤ slew Δt, non-finite → 0) on every tick
+
+``step`` returns a :class:`ControlOutput`: the currents to apply, the estimate it used, its
+prediction of the pose at the next tick, and a :class:`ControllerStatus` (solve time,
+iterations, success, fallback). Planners differ (NMPC, PID + allocation, linear MPC +
+allocation); estimators differ (Kalman filter, measurement-or-prediction, hold-last); the loop
+around them is this one class.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magrun.rigs.base import clamp_currents
+from magrun.robot import wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class ControllerStatus:
+    """How one tick's plan was obtained.
+
+    Attributes
+    ----------
+    solve_time : float
+        Wall time of the planner, s.
+    iterations : int
+        Solver iterations (0 for closed-form planners).
+    success : bool
+        Whether the solver converged (always true for closed-form planners).
+    fallback : str
+        ``""`` when the plan was used, else what replaced it: ``"shifted"`` (the previous
+        plan's next currents) or ``"zero"``.
+    message : str
+        The solver's return status.
+    """
+
+    solve_time: float
+    iterations: int = 0
+    success: bool = True
+    fallback: str = ""
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planner's answer: currents (A) and the state it predicts one tick ahead."""
+
+    currents: FloatArray
+    predicted_state: FloatArray  # (6,) x, y, θ, vx, vy, ω
+    status: ControllerStatus
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """What a controller hands to the rig and the recorder at one tick."""
+
+    currents: FloatArray  # (n_channels,) A, within limits
+    estimate: FloatArray  # (3,) the pose the plan started from
+    predicted: FloatArray  # (3,) predicted pose at the next tick
+    status: ControllerStatus
+
+
+class Estimator(ABC):
+    """Turns the (possibly missing) measurement and the last prediction into a pose."""
+
+    @abstractmethod
+    def reset(self, pose: FloatArray) -> None: ...
+
+    @abstractmethod
+    def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
+        """The pose estimate (3,) at this tick."""
+
+
+class Planner(ABC):
+    """Turns a state estimate and a reference window into currents."""
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Forget warm starts and integrators (a new trial)."""
+
+    @abstractmethod
+    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+        """Currents for this tick.
+
+        Parameters
+        ----------
+        state : ndarray, shape (6,)
+            Estimated ``[x, y, θ, vx, vy, ω]``, SI.
+        reference : ndarray, shape (horizon + 1, 3)
+            Desired poses at this tick and the next ``horizon`` ticks.
+        previous : ndarray, shape (n_channels,)
+            Currents applied at the previous tick, A.
+        """
+
+    @abstractmethod
+    def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
+        """The planner's model of the state one tick after applying ``currents``."""
+
+
+class Controller:
+    """Estimator + planner + safety clamp: one tick of any control method.
+
+    Parameters
+    ----------
+    name : str
+        Method name as recordings state it (``proposed``, ``baseline1`` …).
+    estimator, planner
+        The method's parts.
+    dt : float
+        Control period, s.
+    max_current, max_slew_rate : float
+        Limits, A and A/s; every output obeys them.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        estimator: Estimator,
+        planner: Planner,
+        dt: float,
+        max_current: float,
+        max_slew_rate: float,
+        n_channels: int,
+    ) -> None:
+        self.name = name
+        self.estimator = estimator
+        self.planner = planner
+        self.dt = dt
+        self.max_current = max_current
+        self.max_change = max_slew_rate * dt
+        self.n_channels = n_channels
+        self.reset(np.zeros(3))
+
+    def reset(self, pose: ArrayLike) -> None:
+        """Start a trial: the robot at rest at ``pose``, all currents 0 A."""
+        p = np.asarray(pose, dtype=np.float64).copy()
+        self.estimator.reset(p)
+        self.planner.reset()
+        self._previous_estimate = p
+        self._prediction: FloatArray | None = None
+        self.currents = np.zeros(self.n_channels)
+
+    def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
+        """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
+        z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
+        estimate = self.estimator.update(z, self._prediction)
+        delta = estimate - self._previous_estimate
+        delta[2] = wrap_angle(delta[2])
+        state = np.concatenate([estimate, delta / self.dt])
+        plan = self.planner.plan(state, reference, self.currents)
+        currents = clamp_currents(plan.currents, self.currents, self.max_current, self.max_change)
+        predicted = plan.predicted_state
+        if not np.allclose(currents, plan.currents, atol=1e-6, rtol=0) or not np.all(
+            np.isfinite(predicted)
+        ):
+            predicted = self.planner.predict(state, currents)
+        self._previous_estimate = estimate
+        self._prediction = predicted[:3].copy()
+        self.currents = currents
+        return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status)
+
+
+def angle_near(angle: float, ref: float) -> float:
+    """``angle`` shifted by a multiple of 2π to lie within π of ``ref``."""
+    return ref + float(wrap_angle(angle - ref)) if math.isfinite(angle) else angle

@@ -1,0 +1,244 @@
+"""Two-layer baselines (paper, Section II-E): pose controller → force/torque → allocation.
+
+- :class:`PIDPlanner` (Baseline 2): a PID on position and on orientation, with the reference
+  velocity as feed-forward, scaled by the drag model (F = D(θ) v_cmd, τ = d_r ω_cmd), so the
+  gains read as bandwidths in 1/s.
+- :class:`LinearMPCPlanner` (Baselines 3 and 4): an MPC on the rigid-body model linearised
+  at the current heading (drag matrix D(θ₀) frozen over the horizon, exact zero-order-hold
+  discretisation), inputs the force and torque within box limits. Its quadratic programme
+  with box constraints is solved exactly as a bounded least-squares problem (condensed:
+  the states are eliminated), which scipy's BVLS does in a few milliseconds.
+
+Both hand the first wrench to :func:`magrun.control.allocation.allocate` with their field model
+(lookup tables for B2 and B3, Zernike for B4). The predicted pose for the next tick is the
+linear model driven by the wrench the allocated currents actually produce (per the
+allocation's model); the PID makes no prediction (NaN), as it uses none.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import expm
+from scipy.optimize import lsq_linear
+
+from magrun.control.allocation import AllocationConfig, allocate
+from magrun.control.base import ControllerStatus, Plan, Planner, angle_near
+from magrun.field.model import PlanarFieldModel
+from magrun.robot import RobotParams, wrap_angle
+
+FloatArray = NDArray[np.float64]
+
+
+def linear_model(robot: RobotParams, theta: float, dt: float) -> tuple[FloatArray, FloatArray]:
+    """Exact ZOH discretisation ``(Ad (6, 6), Bd (6, 3))`` of the dynamics at heading θ.
+
+    State ``[x, y, θ, vx, vy, ω]`` and input ``[Fx, Fy, τ]``, SI.
+    """
+    c, s = np.cos(theta), np.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    D = R @ np.diag([robot.drag_parallel, robot.drag_perpendicular]) @ R.T
+    Ac = np.zeros((6, 6))
+    Ac[0:3, 3:6] = np.eye(3)
+    Ac[3:5, 3:5] = -D / robot.mass
+    Ac[5, 5] = -robot.drag_rotation / robot.inertia
+    Bc = np.zeros((6, 3))
+    Bc[3:5, 0:2] = np.eye(2) / robot.mass
+    Bc[5, 2] = 1 / robot.inertia
+    aug = np.zeros((9, 9))
+    aug[:6, :6], aug[:6, 6:] = Ac * dt, Bc * dt
+    E = expm(aug)
+    return E[:6, :6], E[:6, 6:]
+
+
+class TwoLayerPlanner(Planner):
+    """Shared part of the two-layer planners: allocation, limits, prediction."""
+
+    def __init__(
+        self,
+        field_model: PlanarFieldModel,
+        robot: RobotParams,
+        dt: float = 0.04,
+        allocation: AllocationConfig | None = None,
+    ) -> None:
+        self.model = field_model
+        self.robot = robot
+        self.dt = dt
+        self.allocation = allocation or AllocationConfig()
+        coils = field_model.coils
+        self.max_current = coils.max_current
+        self.max_change = coils.max_slew_rate * dt
+
+    def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
+        raise NotImplementedError
+
+    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+        t0 = time.perf_counter()
+        wrench = self.desired_wrench(state, reference)
+        lower = np.maximum(-self.max_current, previous - self.max_change)
+        upper = np.minimum(self.max_current, previous + self.max_change)
+        currents, achieved = allocate(
+            self.model,
+            state[:2],
+            float(state[2]),
+            self.robot.moment,
+            wrench,
+            lower,
+            upper,
+            self.allocation,
+            self.max_current,
+        )
+        predicted = self._predict_with_wrench(state, achieved)
+        return Plan(currents, predicted, ControllerStatus(time.perf_counter() - t0))
+
+    def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
+        from magrun.control.allocation import wrench_matrix
+
+        A, _ = wrench_matrix(self.model, state[:2], float(state[2]), self.robot.moment)
+        return self._predict_with_wrench(state, A @ currents)
+
+    def _predict_with_wrench(self, state: FloatArray, wrench: FloatArray) -> FloatArray:
+        Ad, Bd = linear_model(self.robot, float(state[2]), self.dt)
+        return Ad @ state + Bd @ wrench
+
+
+@dataclass(frozen=True)
+class PIDConfig:
+    """PID gains as bandwidths (1/s, 1/s², s) on position and orientation."""
+
+    kp_position: float = 4.0
+    ki_position: float = 1.0
+    kd_position: float = 0.0
+    kp_angle: float = 5.0
+    ki_angle: float = 1.0
+    kd_angle: float = 0.0
+    integral_limit_position: float = 5e-3  # m s
+    integral_limit_angle: float = 0.5  # rad s
+
+
+class PIDPlanner(TwoLayerPlanner):
+    """Baseline 2: PID on pose, with drag-scaled output and reference-velocity feed-forward."""
+
+    def __init__(
+        self,
+        field_model: PlanarFieldModel,
+        robot: RobotParams,
+        dt: float = 0.04,
+        config: PIDConfig | None = None,
+        allocation: AllocationConfig | None = None,
+    ) -> None:
+        super().__init__(field_model, robot, dt, allocation)
+        self.config = config or PIDConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        self._integral = np.zeros(3)
+        self._last_error: FloatArray | None = None
+
+    def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
+        cfg, dt = self.config, self.dt
+        e = reference[0] - state[:3]
+        e[2] = wrap_angle(e[2])
+        self._integral += e * dt
+        lim = np.array([cfg.integral_limit_position] * 2 + [cfg.integral_limit_angle])
+        self._integral = np.clip(self._integral, -lim, lim)
+        de = np.zeros(3) if self._last_error is None else (e - self._last_error) / dt
+        self._last_error = e
+        ff = (reference[1] - reference[0]) / dt
+        kp = np.array([cfg.kp_position] * 2 + [cfg.kp_angle])
+        ki = np.array([cfg.ki_position] * 2 + [cfg.ki_angle])
+        kd = np.array([cfg.kd_position] * 2 + [cfg.kd_angle])
+        v_cmd = ff + kp * e + ki * self._integral + kd * de
+        c, s = np.cos(state[2]), np.sin(state[2])
+        R = np.array([[c, -s], [s, c]])
+        D = R @ np.diag([self.robot.drag_parallel, self.robot.drag_perpendicular]) @ R.T
+        return np.concatenate([D @ v_cmd[:2], [self.robot.drag_rotation * v_cmd[2]]])
+
+    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+        p = super().plan(state, reference, previous)
+        return Plan(p.currents, np.full(6, np.nan), p.status)
+
+    def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
+        return np.full(6, np.nan)
+
+
+@dataclass(frozen=True)
+class LinearMPCConfig:
+    """Linear MPC horizon, wrench limits and weights (mm, rad, wrench / limit)."""
+
+    horizon: int = 20
+    max_force: float = 4e-4  # N, per axis
+    max_torque: float = 4e-6  # N m
+    q_position: float = 10.0  # per mm²
+    q_angle: float = 100.0  # per rad²
+    r_wrench: float = 1.0  # per (wrench / limit)²
+    s_wrench_change: float = 0.5
+
+
+class LinearMPCPlanner(TwoLayerPlanner):
+    """Baselines 3 (lookup tables) and 4 (Zernike): linear MPC on force and torque."""
+
+    def __init__(
+        self,
+        field_model: PlanarFieldModel,
+        robot: RobotParams,
+        dt: float = 0.04,
+        config: LinearMPCConfig | None = None,
+        allocation: AllocationConfig | None = None,
+    ) -> None:
+        super().__init__(field_model, robot, dt, allocation)
+        self.config = config or LinearMPCConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        self._last_wrench = np.zeros(3)
+
+    def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
+        cfg, N = self.config, self.config.horizon
+        Ad, Bd = linear_model(self.robot, float(state[2]), self.dt)
+        limit = np.array([cfg.max_force, cfg.max_force, cfg.max_torque])
+        Bn = Bd * limit  # inputs normalised by their limits
+        # condensed prediction: X_k = Ad^k x0 + Σ_j Ad^(k-1-j) Bn u_j, k = 1 … N
+        powers = [np.eye(6)]
+        for _ in range(N):
+            powers.append(Ad @ powers[-1])
+        Phi = np.zeros((6 * N, 3 * N))
+        free = np.zeros(6 * N)
+        for k in range(1, N + 1):
+            free[6 * (k - 1) : 6 * k] = powers[k] @ state
+            for j in range(k):
+                Phi[6 * (k - 1) : 6 * k, 3 * j : 3 * j + 3] = powers[k - 1 - j] @ Bn
+        ref = np.asarray(reference[1 : N + 1], dtype=np.float64).copy()
+        th = float(state[2])
+        for k in range(N):  # the reference angle nearest the running estimate
+            ref[k, 2] = angle_near(ref[k, 2], th)
+            th = ref[k, 2]
+        sel = np.zeros((3 * N, 6 * N))
+        for k in range(N):
+            sel[3 * k : 3 * k + 3, 6 * k : 6 * k + 3] = np.eye(3)
+        wq = np.sqrt(np.array([cfg.q_position / 1e-6, cfg.q_position / 1e-6, cfg.q_angle]))
+        Wq = np.tile(wq, N)[:, None]
+        diff = np.eye(3 * N) - np.eye(3 * N, k=-3)
+        prev = np.zeros(3 * N)
+        prev[:3] = self._last_wrench / limit
+        M = np.vstack(
+            [
+                Wq * (sel @ Phi),
+                np.sqrt(cfg.r_wrench) * np.eye(3 * N),
+                np.sqrt(cfg.s_wrench_change) * diff,
+            ]
+        )
+        rhs = np.concatenate(
+            [
+                Wq.ravel() * (ref.ravel() - sel @ free),
+                np.zeros(3 * N),
+                np.sqrt(cfg.s_wrench_change) * prev,
+            ]
+        )
+        res = lsq_linear(M, rhs, bounds=(-1.0, 1.0), method="bvls")
+        wrench = res.x[:3] * limit
+        self._last_wrench = wrench
+        return wrench

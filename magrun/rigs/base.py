@@ -1,0 +1,109 @@
+"""The :class:`Rig` interface shared by the simulated plant and the real coil rig.
+
+A rig has a lifecycle (``connect`` / ``disconnect``, or a ``with`` block) and a tick API the
+runner drives at the control period::
+
+    with SimRig(...) as rig:
+        rig.reset(start_pose)
+        for k in range(n_ticks):
+            obs = rig.observe()                   # time, actual pose (+ camera frame later)
+            applied = rig.apply(currents)         # what the amplifiers will actually drive
+            rig.advance(dt)                       # simulate (or wait) one control period
+
+``apply`` is the safety layer every rig shares: non-finite requests become zero, then
+:func:`clamp_currents` enforces the per-coil current limit and the slew limit, and the rig
+returns the currents it will really drive (as lerobot's ``send_action`` does).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Self
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def clamp_currents(
+    requested: ArrayLike, previous: ArrayLike, max_current: float, max_change: float
+) -> FloatArray:
+    """The currents closest to ``requested`` within the limits.
+
+    The limits are |I| ≤ max_current and |I − previous| ≤ max_change (a slew limit over one
+    period). Non-finite requests are replaced by 0 A (then limited like any other request), so
+    a NaN from a failed solve can never reach an amplifier. All values in A.
+    """
+    req = np.asarray(requested, dtype=np.float64)
+    prev = np.asarray(previous, dtype=np.float64)
+    req = np.where(np.isfinite(req), req, 0.0)
+    lo = np.maximum(-max_current, prev - max_change)
+    hi = np.minimum(max_current, prev + max_change)
+    # previous may itself sit outside a reduced max_current: then lo > hi, go toward the limit
+    return np.clip(req, lo, np.maximum(lo, hi))
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What the rig reports at one tick.
+
+    Attributes
+    ----------
+    t : float
+        Rig time, s, from the trial start.
+    pose : ndarray, shape (3,)
+        The actual pose ``(x, y, θ)``, m and rad: simulator truth, or high-rate camera tracking
+        on the hardware rig.
+    in_contact : bool
+        Whether the robot touched a wall since the previous observation (simulation only).
+    """
+
+    t: float
+    pose: FloatArray
+    in_contact: bool = False
+
+
+class Rig(ABC):
+    """A coil rig: drives currents, reports the robot's pose."""
+
+    #: channel names in current-vector order
+    channel_names: tuple[str, ...]
+    max_current: float  # A
+    max_slew_rate: float  # A/s
+
+    def connect(self) -> None:  # noqa: B027 - optional hook, a no-op in simulation
+        """Acquire the hardware (no-op in simulation)."""
+
+    def disconnect(self) -> None:  # noqa: B027 - optional hook, a no-op in simulation
+        """Drive zero currents and release the hardware (no-op in simulation)."""
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.disconnect()
+
+    @abstractmethod
+    def reset(self, pose: ArrayLike) -> None:
+        """Start a trial with the robot at rest at ``pose`` (x, y, θ) and all currents at 0 A."""
+
+    @abstractmethod
+    def observe(self) -> Observation:
+        """The rig's time and the robot's actual pose now."""
+
+    @abstractmethod
+    def apply(self, currents: ArrayLike) -> FloatArray:
+        """Command currents (A, one per channel); returns those that will be driven."""
+
+    @abstractmethod
+    def advance(self, duration: float) -> None:
+        """Let ``duration`` seconds pass with the applied currents (simulate, or wait)."""

@@ -1,0 +1,169 @@
+"""The simulated coil rig: the robot's true dynamics in the reference ("FEA") field.
+
+    >>> from magrun.rigs.sim import SimRig
+    >>> rig = SimRig.default(robot="magnet", seed=0)
+    >>> rig.reset([0.0, 0.0, 0.0])
+    >>> rig.apply([0, 10, 0, 0, 0, 0, 0, 0])                 # A, one per channel
+    >>> rig.advance(0.04)
+    >>> rig.observe().pose                                     # x, y (m), θ (rad)
+
+What the controllers do not know, and the plant does:
+
+- the field is the reference maps (:class:`~magrun.field.grid.ChannelGrid`, bilinear on the
+  1 mm grid), not the controller's Zernike or lookup-table model;
+- the robot's mass, drag and moment, and every coil's gain, are drawn per trial from
+  :class:`Perturbation` around the nominal values (seeded: a trial is reproducible);
+- the amplifiers ramp each current toward its command at the slew limit instead of stepping;
+- walls stop the robot (inelastic, frictionless contact of its cross-section disk).
+
+The plant integrates :func:`magrun.robot.discrete_step` on a fine step (1 ms by default),
+re-evaluating the field and the ramping currents every step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magrun.field.coils import CoilSystem
+from magrun.field.grid import ChannelGrid
+from magrun.rigs.base import Observation, Rig, clamp_currents
+from magrun.robot import RobotParams, discrete_step, load_robot
+from magrun.scene import Walls
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """Relative standard deviations of the per-trial parameter draws (0 = nominal).
+
+    Each factor is log-normal, ``exp(N(0, σ²))``, so it stays positive: mass (and inertia),
+    all drag coefficients, the magnetic moment, and each coil's gain (field per ampere).
+    """
+
+    mass: float = 0.0
+    drag: float = 0.0
+    moment: float = 0.0
+    coil_gain: float = 0.0
+
+    def draw(
+        self, robot: RobotParams, n_channels: int, rng: np.random.Generator
+    ) -> tuple[RobotParams, FloatArray]:
+        """The true robot and per-channel gains of one trial."""
+        f = np.exp(rng.normal(0.0, [self.mass, self.drag, self.moment]))
+        gains = np.exp(rng.normal(0.0, self.coil_gain, n_channels))
+        return robot.scaled(mass=f[0], drag=f[1], moment=f[2]), gains
+
+
+#: the default mismatch between the controllers' models and the simulated plant
+DEFAULT_PERTURBATION = Perturbation(mass=0.1, drag=0.1, moment=0.05, coil_gain=0.02)
+
+
+class SimRig(Rig):
+    """Simulated plant behind the :class:`Rig` interface.
+
+    Parameters
+    ----------
+    coils : CoilSystem
+        Channels and limits (``max_current``, ``max_slew_rate``).
+    grid : ChannelGrid
+        The plant's field tables.
+    robot : RobotParams
+        Nominal robot; the trial's true robot is drawn from ``perturbation``.
+    walls : Walls, optional
+        Wall segments; default: the workspace box.
+    perturbation : Perturbation
+        Per-trial parameter spread; default :data:`DEFAULT_PERTURBATION`.
+    seed : int
+        Seeds the parameter draw.
+    fine_step : float
+        Integration step, s.
+    """
+
+    def __init__(
+        self,
+        coils: CoilSystem,
+        grid: ChannelGrid,
+        robot: RobotParams,
+        walls: Walls | None = None,
+        perturbation: Perturbation = DEFAULT_PERTURBATION,
+        seed: int = 0,
+        fine_step: float = 1e-3,
+    ) -> None:
+        if grid.channel_names != coils.channel_names:
+            raise ValueError("the field grid was built for other channels than the coil system")
+        self.coils = coils
+        self.grid = grid
+        self.channel_names = coils.channel_names
+        self.max_current = coils.max_current
+        self.max_slew_rate = coils.max_slew_rate
+        self.walls = walls if walls is not None else Walls.box(coils.workspace_half_width)
+        self.nominal_robot = robot
+        self.robot, self.coil_gains = perturbation.draw(
+            robot, coils.n_channels, np.random.default_rng(seed)
+        )
+        self.fine_step = fine_step
+        self._contact_radius = robot.diameter / 2
+        self.reset([0.0, 0.0, 0.0])
+
+    @classmethod
+    def default(
+        cls,
+        robot: str = "magnet",
+        walls: Walls | None = None,
+        perturbation: Perturbation = DEFAULT_PERTURBATION,
+        seed: int = 0,
+    ) -> SimRig:
+        """The paper's rig with the shipped reference maps."""
+        coils = CoilSystem.load()
+        return cls(coils, ChannelGrid.load(coils), load_robot(robot), walls, perturbation, seed)
+
+    def reset(self, pose: ArrayLike) -> None:
+        p = np.asarray(pose, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"pose must be a finite (x, y, θ), got {pose!r}")
+        self.state = np.array([p[0], p[1], p[2], 0.0, 0.0, 0.0])
+        self.t = 0.0
+        self.driven = np.zeros(self.coils.n_channels)  # what the amplifiers drive now
+        self.target = np.zeros(self.coils.n_channels)  # what they ramp toward
+        self._contact = False
+
+    def observe(self) -> Observation:
+        obs = Observation(t=self.t, pose=self.state[:3].copy(), in_contact=self._contact)
+        self._contact = False
+        return obs
+
+    def apply(self, currents: ArrayLike) -> FloatArray:
+        I = np.asarray(currents, dtype=np.float64)
+        if I.shape != (self.coils.n_channels,):
+            raise ValueError(f"expected {self.coils.n_channels} currents, got shape {I.shape}")
+        self.target = clamp_currents(I, self.target, self.max_current, math.inf)
+        return self.target.copy()
+
+    def advance(self, duration: float) -> None:
+        n = max(1, round(duration / self.fine_step))
+        h = duration / n
+        ramp = self.max_slew_rate * h
+        state = tuple(self.state)
+        for _ in range(n):
+            # amplifiers ramp at the slew limit; the step uses the current at its midpoint
+            nxt = clamp_currents(self.target, self.driven, self.max_current, ramp)
+            drive = 0.5 * (self.driven + nxt) * self.coil_gains
+            self.driven = nxt
+            state = discrete_step(state, partial(self._field, drive), self.robot, h, substeps=1)
+            p, v, touched = self.walls.resolve(
+                np.array(state[:2]), np.array(state[3:5]), self._contact_radius
+            )
+            if touched:
+                state = (p[0], p[1], state[2], v[0], v[1], state[5])
+                self._contact = True
+        self.state = np.array(state, dtype=np.float64)
+        self.t += duration
+
+    def _field(self, currents: FloatArray, x: float, y: float) -> tuple[FloatArray, FloatArray]:
+        return self.grid.field(x, y, currents)

@@ -1,0 +1,310 @@
+"""Robot models and planar dynamics (paper, Section II-C, Eqs. (dynamics) and (magnetic_force)).
+
+State ``x = [x, y, θ, vx, vy, ω]`` in m, rad, m/s, rad/s. The robot is a rigid cylinder whose
+magnetic moment ``m = |m| (cos θ, sin θ)`` lies along its axis::
+
+    m_r v̇ = F_mag − R(θ) diag(d∥, d⊥) R(θ)ᵀ v        F_mag = (m·∇)B,  F_l = Σ_k m_k ∂B_k/∂x_l
+    J ω̇   = τ_mag − d_r ω                            τ_mag = m × B = m_x B_y − m_y B_x
+
+Discretisation
+--------------
+The velocity time constants m_r/d (≈ 6 ms) and J/d_r (≈ 2 ms) are far below the NMPC's 40 ms
+step: explicit Euler on these equations diverges. :func:`discrete_step` is an exponential
+integrator: over a sub-step of length h, with force and torque held, the damped velocity
+equations are linear and are solved exactly along the body axes,
+
+    u(h) = u_ss + (u₀ − u_ss) e^{−h/τ},    s(h) = u_ss h + (u₀ − u_ss) τ (1 − e^{−h/τ}),
+
+(u a body-axis velocity, u_ss = f/d its terminal value, τ = m_r/d, s the distance moved), so
+the scheme is stable for any h. The field and its gradient are evaluated once per step at the
+step's start position (the robot moves well under a millimetre in 40 ms); force and torque
+are re-evaluated from them on ``substeps`` sub-steps, because orientation is the fast
+variable (alignment rate |m||B|/d_r up to ~50 1/s next to a small coil at full current).
+tests/test_robot.py checks the step against an adaptive stiff integration (Radau) of the
+continuous equations.
+
+The kernel is written once over an ``ops`` namespace (``sin``, ``cos``, ``exp``), so NumPy
+floats, NumPy arrays and CasADi expressions all run the same code.
+
+    >>> from magrun.robot import load_robot
+    >>> robot = load_robot("magnet")
+    >>> round(robot.moment, 5), robot.name
+    (0.00135, 'magnet')
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from importlib import resources
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field, RootModel
+
+from magrun.yamlio import YamlModelError, parse_yaml_model
+
+FloatArray = NDArray[np.float64]
+Expr = Any
+
+NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, exp=np.exp)
+CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, exp=ca.exp)
+STATE_NAMES = ("x", "y", "theta", "vx", "vy", "omega")
+
+
+class RobotSpec(BaseModel):
+    """One robot in ``robots.yaml`` (YAML units as suffixed; see the file for the derivation)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    description: str
+    length_mm: float = Field(gt=0)
+    diameter_mm: float = Field(gt=0)
+    moment_am2: float = Field(gt=0, description="Magnetic moment along the robot's axis, A m².")
+    mass_g: float = Field(gt=0, description="Mass including added fluid mass.")
+    viscosity_mpa_s: float = Field(gt=0, description="Fluid viscosity (drag derivation only).")
+    contact_factor: float = Field(gt=0, description="Effective / free-fluid drag (derivation).")
+    drag_parallel_n_s_per_m: float = Field(gt=0)
+    drag_perpendicular_n_s_per_m: float = Field(gt=0)
+    drag_rotation_n_m_s: float = Field(gt=0)
+
+
+class RobotsFile(RootModel[dict[str, RobotSpec]]):
+    pass
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """Rigid-body parameters in SI units, as the dynamics use them."""
+
+    name: str
+    length: float  # m
+    diameter: float  # m
+    moment: float  # A m², along the body axis
+    mass: float  # kg
+    inertia: float  # kg m², about the vertical axis
+    drag_parallel: float  # N s/m, along the body axis
+    drag_perpendicular: float  # N s/m, across the body axis
+    drag_rotation: float  # N m s
+
+    @classmethod
+    def from_spec(cls, name: str, spec: RobotSpec) -> RobotParams:
+        length, diameter, mass = spec.length_mm * 1e-3, spec.diameter_mm * 1e-3, spec.mass_g * 1e-3
+        return cls(
+            name=name,
+            length=length,
+            diameter=diameter,
+            moment=spec.moment_am2,
+            mass=mass,
+            inertia=mass * (length**2 / 12 + diameter**2 / 16),
+            drag_parallel=spec.drag_parallel_n_s_per_m,
+            drag_perpendicular=spec.drag_perpendicular_n_s_per_m,
+            drag_rotation=spec.drag_rotation_n_m_s,
+        )
+
+    def scaled(self, *, mass: float = 1.0, drag: float = 1.0, moment: float = 1.0) -> RobotParams:
+        """A copy with mass (and inertia), all drag coefficients and the moment multiplied."""
+        return replace(
+            self,
+            mass=self.mass * mass,
+            inertia=self.inertia * mass,
+            drag_parallel=self.drag_parallel * drag,
+            drag_perpendicular=self.drag_perpendicular * drag,
+            drag_rotation=self.drag_rotation * drag,
+            moment=self.moment * moment,
+        )
+
+
+def robots_path() -> Path:
+    return Path(str(resources.files("magrun") / "data" / "robots.yaml"))
+
+
+def load_robots(path: str | Path | None = None) -> dict[str, RobotParams]:
+    """All robots of a robots file (default: the paper's two, ``magnet`` and ``drug_delivery``).
+
+    Raises
+    ------
+    magrun.yamlio.YamlModelError
+        If the file does not match the schema; the message names file, line and field.
+    """
+    path = Path(path) if path is not None else robots_path()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise YamlModelError([f"{path}: cannot read robots file: {exc}"]) from exc
+    doc = parse_yaml_model(text, RobotsFile, str(path))
+    return {name: RobotParams.from_spec(name, spec) for name, spec in doc.root.items()}
+
+
+def load_robot(name: str, path: str | Path | None = None) -> RobotParams:
+    robots = load_robots(path)
+    try:
+        return robots[name]
+    except KeyError:
+        raise KeyError(f"unknown robot {name!r}; known: {', '.join(sorted(robots))}") from None
+
+
+def slender_body_drag(
+    length: float, diameter: float, viscosity: float
+) -> tuple[float, float, float]:
+    """Stokes drag of a cylinder in unbounded fluid (Tirado & García de la Torre, 1979/80).
+
+    Parameters
+    ----------
+    length, diameter : float
+        Cylinder size, m (valid for aspect ratios 2–30).
+    viscosity : float
+        Dynamic viscosity, Pa s.
+
+    Returns
+    -------
+    (d_parallel, d_perpendicular, d_rotation) : N s/m, N s/m, N m s
+        Translation along and across the axis, rotation about a transverse axis.
+    """
+    p = length / diameter
+    lp = math.log(p)
+    d_par = 2 * math.pi * viscosity * length / (lp - 0.207 + 0.980 / p - 0.133 / p**2)
+    d_perp = 4 * math.pi * viscosity * length / (lp + 0.839 + 0.185 / p + 0.233 / p**2)
+    d_rot = math.pi * viscosity * length**3 / (3 * (lp - 0.662 + 0.917 / p - 0.050 / p**2))
+    return d_par, d_perp, d_rot
+
+
+# -- kernels ------------------------------------------------------------------------------------
+
+
+def magnetic_wrench(
+    theta: Any, moment: Any, B: Any, G: Any, ops: SimpleNamespace = NUMPY_OPS
+) -> tuple[tuple[Any, Any], Any]:
+    """Force and torque on a moment ``moment`` (A m²) at angle ``theta``, Eq. (magnetic_force).
+
+    ``B = (Bx, By)`` in T and ``G[k][l] = ∂B_k/∂x_l`` in T/m, as nested sequences (or arrays
+    indexable that way). Returns ``((Fx, Fy), τ)`` in N and N m.
+    """
+    mx, my = moment * ops.cos(theta), moment * ops.sin(theta)
+    fx = mx * G[0][0] + my * G[1][0]
+    fy = mx * G[0][1] + my * G[1][1]
+    return (fx, fy), mx * B[1] - my * B[0]
+
+
+def _relax(u0: Any, u_ss: Any, tau: float, h: float) -> tuple[Any, Any]:
+    """Exact solution of u̇ = (u_ss − u)/τ over h: (u(h), ∫₀ʰ u dt)."""
+    decay = math.exp(-h / tau)
+    return u_ss + (u0 - u_ss) * decay, u_ss * h + (u0 - u_ss) * (tau * (1.0 - decay))
+
+
+def _substep_with_wrench(
+    state: tuple[Any, ...],
+    wrench: tuple[tuple[Any, Any], Any],
+    params: RobotParams,
+    h: float,
+    ops: SimpleNamespace,
+) -> tuple[Any, ...]:
+    """Exact damped motion over ``h`` under a held force and torque (body axes of θ₀)."""
+    x, y, th, vx, vy, om = state
+    (fx, fy), tq = wrench
+    c, s = ops.cos(th), ops.sin(th)
+    # body axes: a along the moment, b across it
+    ua, ub = c * vx + s * vy, -s * vx + c * vy
+    fa, fb = c * fx + s * fy, -s * fx + c * fy
+    ua1, sa = _relax(ua, fa / params.drag_parallel, params.mass / params.drag_parallel, h)
+    ub1, sb = _relax(ub, fb / params.drag_perpendicular, params.mass / params.drag_perpendicular, h)
+    om1, dth = _relax(om, tq / params.drag_rotation, params.inertia / params.drag_rotation, h)
+    return (
+        x + c * sa - s * sb,
+        y + s * sa + c * sb,
+        th + dth,
+        c * ua1 - s * ub1,
+        s * ua1 + c * ub1,
+        om1,
+    )
+
+
+def exponential_substep(
+    state: tuple[Any, ...],
+    B: Any,
+    G: Any,
+    params: RobotParams,
+    h: float,
+    ops: SimpleNamespace = NUMPY_OPS,
+) -> tuple[Any, ...]:
+    """One sub-step of length ``h`` (s) with the field (B, G) held: the scheme of the module doc.
+
+    Exponential midpoint rule: a half step under the start wrench predicts the mid-step
+    orientation; the full step then uses the wrench at that orientation. The damping is exact
+    either way; the midpoint makes the orientation coupling second order in ``h``.
+    ``state`` is the 6-tuple ``(x, y, θ, vx, vy, ω)``; returns the next 6-tuple.
+    """
+    start = magnetic_wrench(state[2], params.moment, B, G, ops)
+    half = _substep_with_wrench(state, start, params, h / 2, ops)
+    mid = magnetic_wrench(half[2], params.moment, B, G, ops)
+    return _substep_with_wrench(state, mid, params, h, ops)
+
+
+def discrete_step(
+    state: tuple[Any, ...],
+    field: Callable[[Any, Any], tuple[Any, Any]],
+    params: RobotParams,
+    dt: float,
+    substeps: int = 2,
+    ops: SimpleNamespace = NUMPY_OPS,
+) -> tuple[Any, ...]:
+    """Advance ``state`` by ``dt`` (s) with the field evaluated once at the start position.
+
+    ``field(x, y) -> (B, G)`` gives the total field (T) and gradient (T/m) at a position for
+    the currents held over the step.
+    """
+    B, G = field(state[0], state[1])
+    h = dt / substeps
+    for _ in range(substeps):
+        state = exponential_substep(state, B, G, params, h, ops)
+    return state
+
+
+def state_derivative(
+    state: ArrayLike, B: ArrayLike, G: ArrayLike, params: RobotParams
+) -> FloatArray:
+    """Right-hand side of the continuous equations, for reference integrations and tests.
+
+    ``state`` (6,), ``B`` (2,) in T and ``G`` (2, 2) in T/m at the state's position.
+    """
+    x = np.asarray(state, dtype=np.float64)
+    Bv, Gv = np.asarray(B, dtype=np.float64), np.asarray(G, dtype=np.float64)
+    (fx, fy), tq = magnetic_wrench(x[2], params.moment, Bv, Gv)
+    R = np.array([[math.cos(x[2]), -math.sin(x[2])], [math.sin(x[2]), math.cos(x[2])]])
+    D = R @ np.diag([params.drag_parallel, params.drag_perpendicular]) @ R.T
+    acc = (np.array([fx, fy]) - D @ x[3:5]) / params.mass
+    alpha = (tq - params.drag_rotation * x[5]) / params.inertia
+    return np.array([x[3], x[4], x[5], acc[0], acc[1], alpha])
+
+
+def casadi_step_function(
+    params: RobotParams,
+    field_and_gradient: Callable[[Expr, Expr], tuple[Expr, Expr]],
+    n_currents: int,
+    dt: float,
+    substeps: int = 2,
+    name: str = "step",
+) -> ca.Function:
+    """``name(x[6], I[n]) -> x_next[6]``: :func:`discrete_step` as an SX CasADi function.
+
+    ``field_and_gradient(p, I)`` is a field model's ``casadi_field_and_gradient``.
+    """
+    x = ca.SX.sym("x", 6)
+    I = ca.SX.sym("I", n_currents)
+
+    def field(px: Expr, py: Expr) -> tuple[Expr, Expr]:
+        B, G = field_and_gradient(ca.vertcat(px, py), I)
+        return [B[0], B[1]], [[G[0, 0], G[0, 1]], [G[1, 0], G[1, 1]]]
+
+    nxt = discrete_step(tuple(x[i] for i in range(6)), field, params, dt, substeps, CASADI_OPS)
+    return ca.Function(name, [x, I], [ca.vertcat(*nxt)], ["x", "I"], ["x_next"])
+
+
+def wrap_angle(a: Any) -> Any:
+    """Angle(s) wrapped to [−π, π)."""
+    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
