@@ -242,11 +242,24 @@ def field_import_comsol(
     )
 
 
-def _progress(label: str, enabled: bool) -> Any:
-    """A stderr progress bar (hidden with --json or when stderr is not a terminal)."""
-    return click.progressbar(
-        length=1, label=label, file=sys.stderr if enabled else None, show_eta=True
-    )
+class _Progress:
+    """Per-tick progress on stderr while a trial runs (nothing with --json or off a terminal)."""
+
+    def __init__(self, label: str, enabled: bool) -> None:
+        self.label, self.enabled = label, enabled and sys.stderr.isatty()
+        self._bar: Any = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        if self._bar is None:
+            self._bar = click.progressbar(
+                length=total, label=self.label, file=sys.stderr, show_eta=True
+            )
+            self._bar.__enter__()
+        self._bar.update(1)
+        if done == total:
+            self._bar.__exit__(None, None, None)
 
 
 @cli.command("track")
@@ -291,15 +304,10 @@ def track(
             rig = SimRig.default(robot=robot, seed=seed)
         except KeyError as exc:
             raise InputError(str(exc).strip("'\"")) from exc
-        with _progress(f"{method:>9}", not as_json and sys.stderr.isatty()) as bar:
-
-            def tick(k: int, n: int, bar: Any = bar) -> None:
-                bar.length = n
-                bar.update(1)
-
-            t0 = time.perf_counter()
-            log = run_trial(controller, rig, reference, duration=duration, progress=tick)
-            wall = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        progress = _Progress(f"{method:>9}", not as_json)
+        log = run_trial(controller, rig, reference, duration=duration, progress=progress)
+        wall = time.perf_counter() - t0
         solve = log.solve_times
         row = {
             "method": method,

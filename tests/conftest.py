@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from magrun.field.coils import CoilSystem
+from magrun.field.grid import ChannelGrid
 from magrun.field.lut import LookupTableFieldModel
 from magrun.field.reference import ReferenceMaps
 from magrun.field.zernike import ZernikeFieldModel
+from magrun.robot import RobotParams, load_robot
 
 
 @pytest.fixture(scope="session")
@@ -34,3 +36,13 @@ def lut_model(coils: CoilSystem, reference: ReferenceMaps) -> LookupTableFieldMo
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(20261121)
+
+
+@pytest.fixture(scope="session")
+def channel_grid(coils: CoilSystem, reference: ReferenceMaps) -> ChannelGrid:
+    return ChannelGrid.from_reference(coils, reference)
+
+
+@pytest.fixture(scope="session")
+def magnet_robot() -> RobotParams:
+    return load_robot("magnet")

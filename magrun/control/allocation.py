@@ -34,11 +34,11 @@ FloatArray = NDArray[np.float64]
 class AllocationConfig:
     """Weights of the allocation's least squares (SI)."""
 
-    force_ref: float = 1e-4  # N
-    torque_ref: float = 1e-6  # N m
+    force_ref: float = 1e-5  # N
+    torque_ref: float = 1e-7  # N m
     align_field: float = 2e-3  # T, wanted along the robot's axis
     align_ref: float = 1e-3  # T
-    align_weight: float = 0.1
+    align_weight: float = 0.01
     regularisation: float = 1e-4
 
 

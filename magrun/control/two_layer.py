@@ -2,7 +2,9 @@
 
 - :class:`PIDPlanner` (Baseline 2): a PID on position and on orientation, with the reference
   velocity as feed-forward, scaled by the drag model (F = D(θ) v_cmd, τ = d_r ω_cmd), so the
-  gains read as bandwidths in 1/s.
+  gains read as bandwidths in 1/s. The integrator only accumulates small errors (conditional
+  integration) and is clamped: a drag-dominated robot integrates velocity already, and
+  integrating a step's large initial error winds up into a slow overshoot.
 - :class:`LinearMPCPlanner` (Baselines 3 and 4): an MPC on the rigid-body model linearised
   at the current heading (drag matrix D(θ₀) frozen over the horizon, exact zero-order-hold
   discretisation), inputs the force and torque within box limits. Its quadratic programme
@@ -17,6 +19,7 @@ allocation's model); the PID makes no prediction (NaN), as it uses none.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -109,14 +112,17 @@ class TwoLayerPlanner(Planner):
 class PIDConfig:
     """PID gains as bandwidths (1/s, 1/s², s) on position and orientation."""
 
-    kp_position: float = 4.0
+    kp_position: float = 6.0
     ki_position: float = 1.0
     kd_position: float = 0.0
-    kp_angle: float = 5.0
+    kp_angle: float = 6.0
     ki_angle: float = 1.0
     kd_angle: float = 0.0
-    integral_limit_position: float = 5e-3  # m s
-    integral_limit_angle: float = 0.5  # rad s
+    integral_limit_position: float = 0.5e-3  # m s
+    integral_limit_angle: float = 0.05  # rad s
+    # conditional integration (anti-windup): integrate only errors smaller than these
+    integrate_below_position: float = 1e-3  # m
+    integrate_below_angle: float = math.radians(5.0)  # rad
 
 
 class PIDPlanner(TwoLayerPlanner):
@@ -142,7 +148,8 @@ class PIDPlanner(TwoLayerPlanner):
         cfg, dt = self.config, self.dt
         e = reference[0] - state[:3]
         e[2] = wrap_angle(e[2])
-        self._integral += e * dt
+        small = np.abs(e) < [cfg.integrate_below_position] * 2 + [cfg.integrate_below_angle]
+        self._integral += np.where(small, e * dt, 0.0)
         lim = np.array([cfg.integral_limit_position] * 2 + [cfg.integral_limit_angle])
         self._integral = np.clip(self._integral, -lim, lim)
         de = np.zeros(3) if self._last_error is None else (e - self._last_error) / dt

@@ -1,0 +1,165 @@
+"""The six controllers: one interface, limits on every tick, fallbacks, closed-loop sanity."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
+from magrun.control.base import Controller, ControllerStatus, ControlOutput, Plan, Planner
+from magrun.control.methods import METHODS, ControlConfig, make_controller
+from magrun.control.nmpc import NMPCConfig
+from magrun.control.two_layer import linear_model
+from magrun.estimation import MeasurementOrPrediction
+from magrun.loop import run_trial
+from magrun.rigs.sim import SimRig
+from magrun.scene import Trajectory, s_trajectory
+
+MAX_CHANGE = 300.0 * 0.04  # A per tick: the shipped slew limit over one control period
+
+
+@pytest.fixture(scope="module")
+def controllers(zernike_model, lut_model) -> dict[str, Controller]:
+    return {m: make_controller(m, "magnet", zernike=zernike_model, lut=lut_model) for m in METHODS}
+
+
+@pytest.fixture
+def rig(coils, channel_grid, magnet_robot) -> SimRig:
+    return SimRig(coils, channel_grid, magnet_robot, seed=11)
+
+
+def assert_within_limits(currents: np.ndarray) -> None:
+    assert np.all(np.isfinite(currents))
+    assert np.all(np.abs(currents) <= 30.0 + 1e-9)
+    steps = np.diff(np.vstack([np.zeros(currents.shape[1]), currents]), axis=0)
+    assert np.all(np.abs(steps) <= MAX_CHANGE + 1e-9)
+
+
+def point_target(start: tuple[float, float, float], goal: tuple[float, float, float]) -> Trajectory:
+    """Start pose at t = 0, then the goal pose held: a step reference."""
+    return Trajectory(np.array([0.0, 1e-3, 10.0]), np.array([start, goal, goal]))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_shares_the_interface(controllers, method: str) -> None:
+    c = controllers[method]
+    assert isinstance(c, Controller)
+    assert c.name == method
+    c.reset([0.0, 0.0, 0.0])
+    ref = np.zeros((21, 3))
+    ref[:, 0] = np.linspace(0, 2e-3, 21)
+    out = c.step(np.zeros(3), ref)
+    assert isinstance(out, ControlOutput)
+    assert out.currents.shape == (8,)
+    assert out.estimate.shape == (3,)
+    assert out.predicted.shape == (3,)
+    assert isinstance(out.status, ControllerStatus)
+    assert out.status.solve_time >= 0
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_step_reference_converges_within_limits(controllers, rig: SimRig, method: str) -> None:
+    """A 5 mm / 30° step, perfect feedback: within 0.1 mm and 1° after 3 s, limits every tick."""
+    ref = point_target((0.0, 0.0, 0.0), (0.005, 0.003, math.radians(30)))
+    log = run_trial(controllers[method], rig, ref, duration=3.0)
+    assert_within_limits(log.currents)
+    assert log.position_error[-1] < 0.1e-3
+    assert log.orientation_error[-1] < math.radians(1.0)
+
+
+@pytest.mark.parametrize("method", ["proposed", "baseline2", "baseline3"])
+def test_limits_hold_under_noisy_feedback(controllers, rig: SimRig, method: str) -> None:
+    """3 mm measurement noise on the S-trajectory start: limits still hold every tick."""
+    noise = np.random.default_rng(5)
+
+    def noisy(t: float, pose: np.ndarray) -> np.ndarray:
+        return pose + noise.normal(0, [3e-3, 3e-3, 0.2])
+
+    log = run_trial(controllers[method], rig, s_trajectory(), feedback=noisy, duration=2.0)
+    assert_within_limits(log.currents)
+
+
+def test_solver_failure_falls_back_and_never_breaks_limits(
+    zernike_model, lut_model, rig: SimRig
+) -> None:
+    """IPOPT capped at 1 iteration fails every tick: zero currents first, then the shifted plan."""
+    cfg = ControlConfig(nmpc=replace(NMPCConfig(), max_iter=1))
+    c = make_controller("proposed", "magnet", cfg, zernike_model, lut_model)
+    log = run_trial(c, rig, s_trajectory(), duration=1.0)
+    assert_within_limits(log.currents)
+    assert all(not s.success for s in log.status)
+    assert log.status[0].fallback == "zero"
+    assert_allclose(log.currents[0], 0.0)
+    assert np.all(np.isfinite(log.predicted[1:]))
+
+
+class _BrokenPlanner(Planner):
+    """Returns NaN (twice), then absurd currents, like a solver gone wrong."""
+
+    def __init__(self) -> None:
+        self.k = 0
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def plan(self, state, reference, previous) -> Plan:
+        self.k += 1
+        bad = np.full(8, np.nan) if self.k <= 2 else np.full(8, 1e6)
+        return Plan(bad, np.full(6, np.nan), ControllerStatus(0.0, 0, False, "", "broken"))
+
+    def predict(self, state, currents) -> np.ndarray:
+        return state.copy()
+
+
+def test_safety_clamp_catches_any_planner_output() -> None:
+    c = Controller("broken", MeasurementOrPrediction(), _BrokenPlanner(), 0.04, 30.0, 300.0, 8)
+    c.reset(np.zeros(3))
+    out = np.array([c.step(np.zeros(3), np.zeros((21, 3))).currents for _ in range(10)])
+    assert_within_limits(out)
+    # NaN becomes 0 A; the absurd request then ramps at the slew limit and saturates
+    assert_allclose(out[:, 0], [0, 0, 12, 24, 30, 30, 30, 30, 30, 30])
+
+
+def test_allocation_reaches_a_feasible_wrench(lut_model, magnet_robot) -> None:
+    p, theta = np.array([0.01, -0.005]), 0.4
+    wrench = np.array([1e-4, -5e-5, 1e-6])
+    cfg = AllocationConfig(align_weight=0.0, regularisation=1e-8)
+    I, achieved = allocate(
+        lut_model, p, theta, magnet_robot.moment, wrench, -30 * np.ones(8), 30 * np.ones(8), cfg, 30
+    )
+    assert_allclose(achieved, wrench, rtol=1e-4)
+    A, _ = wrench_matrix(lut_model, p, theta, magnet_robot.moment)
+    assert_allclose(A @ I, achieved)
+
+
+def test_allocation_respects_bounds(lut_model, magnet_robot) -> None:
+    lo, hi = -2 * np.ones(8), np.linspace(-1, 3, 8)
+    I, _ = allocate(
+        lut_model,
+        np.zeros(2),
+        0.0,
+        magnet_robot.moment,
+        np.array([1e-2, 0, 0]),
+        lo,
+        hi,
+        AllocationConfig(),
+        30.0,
+    )
+    assert np.all(lo - 1e-12 <= I)
+    assert np.all(hi + 1e-12 >= I)
+
+
+def test_linear_model_matches_the_exponential_integrator(magnet_robot) -> None:
+    """At a fixed heading with a held wrench the ZOH model is exact; so is robot.discrete_step."""
+    from magrun.robot import NUMPY_OPS, _substep_with_wrench
+
+    theta = 0.3
+    x0 = np.array([0.001, 0.002, theta, 0.003, -0.001, 0.0])
+    w = np.array([2e-4, -1e-4, 0.0])
+    Ad, Bd = linear_model(magnet_robot, theta, 0.04)
+    ours = _substep_with_wrench(tuple(x0), ((w[0], w[1]), w[2]), magnet_robot, 0.04, NUMPY_OPS)
+    assert_allclose(Ad @ x0 + Bd @ w, ours, rtol=1e-9, atol=1e-15)

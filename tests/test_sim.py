@@ -1,0 +1,125 @@
+"""Simulated rig: field tables, limits, walls, parameter draws."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+
+from magrun.field.grid import ChannelGrid
+from magrun.field.lut import LookupTableFieldModel
+from magrun.rigs.base import clamp_currents
+from magrun.rigs.sim import Perturbation, SimRig
+from magrun.scene import Walls, s_trajectory
+
+currents = st.lists(
+    st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=8, max_size=8
+)
+prev_currents = st.lists(st.floats(-30, 30), min_size=8, max_size=8)
+
+
+@settings(max_examples=200, deadline=None)
+@given(currents, prev_currents)
+def test_clamp_currents_always_within_limits(req: list[float], prev: list[float]) -> None:
+    out = clamp_currents(req, prev, 30.0, 12.0)
+    assert np.all(np.isfinite(out))
+    assert np.all(np.abs(out) <= 30.0)
+    assert np.all(np.abs(out - np.array(prev)) <= 12.0 + 1e-12)
+    # a request inside the limits passes unchanged
+    assert_allclose(clamp_currents(out, prev, 30.0, 12.0), out, rtol=0, atol=0)
+
+
+def test_channel_grid_equals_the_lookup_table_model(
+    channel_grid: ChannelGrid, lut_model: LookupTableFieldModel, rng
+) -> None:
+    pts = rng.uniform(-0.05, 0.05, (50, 2))
+    B, G = lut_model.unit_field_and_gradient(pts)
+    for p, b, g in zip(pts, B, G, strict=True):
+        u = channel_grid.unit(*p)
+        assert_allclose(u[:, :2], b, rtol=1e-9, atol=1e-15)
+        assert_allclose(u[:, 2:].reshape(8, 2, 2), g, rtol=1e-9, atol=1e-13)
+
+
+@pytest.fixture
+def rig(coils, channel_grid, magnet_robot) -> SimRig:
+    return SimRig(coils, channel_grid, magnet_robot, perturbation=Perturbation(), seed=0)
+
+
+def test_zero_currents_keep_the_robot_still(rig: SimRig) -> None:
+    rig.reset([0.01, 0.02, 0.3])
+    for _ in range(25):
+        rig.apply(np.zeros(8))
+        rig.advance(0.04)
+    obs = rig.observe()
+    assert obs.t == pytest.approx(1.0)
+    assert_allclose(obs.pose, [0.01, 0.02, 0.3], rtol=0, atol=0)
+
+
+def test_apply_clamps_and_amplifiers_ramp_at_the_slew_limit(rig: SimRig) -> None:
+    rig.reset([0.0, 0.0, 0.0])
+    applied = rig.apply([100, -100, np.nan, 5, 0, 0, 0, 0])
+    assert_allclose(applied, [30, -30, 0, 5, 0, 0, 0, 0])
+    rig.advance(0.04)  # 300 A/s x 40 ms = 12 A
+    assert_allclose(rig.driven, [12, -12, 0, 5, 0, 0, 0, 0], atol=1e-9)
+
+
+def test_walls_stop_the_robot(rig: SimRig) -> None:
+    """Full current pulling toward the east wall: the robot's disk stops at the wall."""
+    rig.reset([0.03, 0.0, 0.0])
+    I = np.zeros(8)
+    I[rig.channel_names.index("large_E")] = -30.0  # attracts the moment toward the east coil
+    I[rig.channel_names.index("small_E")] = -30.0
+    touched = False
+    for _ in range(100):
+        rig.apply(I)
+        rig.advance(0.04)
+        obs = rig.observe()
+        touched |= obs.in_contact
+        assert obs.pose[0] <= 0.05 - rig.robot.diameter / 2 + 1e-12
+    assert touched
+
+
+def test_walls_resolve_projects_out_and_removes_inward_velocity() -> None:
+    walls = Walls.box(0.05)
+    p, v, hit = walls.resolve(np.array([0.0495, 0.0]), np.array([0.01, 0.002]), 0.0014)
+    assert hit
+    assert p[0] == pytest.approx(0.05 - 0.0014)
+    assert_allclose(v, [0.0, 0.002])
+
+
+def test_perturbation_draws_are_seeded(coils, channel_grid, magnet_robot) -> None:
+    a = SimRig(
+        coils, channel_grid, magnet_robot, perturbation=Perturbation(0.1, 0.1, 0.1, 0.1), seed=3
+    )
+    b = SimRig(
+        coils, channel_grid, magnet_robot, perturbation=Perturbation(0.1, 0.1, 0.1, 0.1), seed=3
+    )
+    c = SimRig(
+        coils, channel_grid, magnet_robot, perturbation=Perturbation(0.1, 0.1, 0.1, 0.1), seed=4
+    )
+    assert a.robot == b.robot
+    assert_allclose(a.coil_gains, b.coil_gains)
+    assert a.robot != c.robot
+    nominal = SimRig(coils, channel_grid, magnet_robot, perturbation=Perturbation(), seed=3)
+    assert nominal.robot == magnet_robot
+    assert_allclose(nominal.coil_gains, 1.0)
+
+
+def test_s_trajectory_geometry() -> None:
+    ref = s_trajectory(size=0.043, speed=0.003)
+    xy = ref.poses[:, :2]
+    assert_allclose(xy.min(axis=0), [-0.0215, -0.0215], atol=1e-6)
+    assert_allclose(xy.max(axis=0), [0.0215, 0.0215], atol=1e-6)
+    length = 0.043 * 2 + math.pi * 0.043 / 2  # three legs (2 x 43 mm in all) + two half circles
+    assert ref.duration == pytest.approx(length / 0.003, rel=1e-3)
+    # heading along the path: θ is the direction of motion
+    d = np.diff(xy, axis=0)
+    moving = np.hypot(*d.T) > 0
+    heading = np.arctan2(d[moving, 1], d[moving, 0])
+    err = (heading - ref.poses[:-1][moving, 2] + math.pi) % (2 * math.pi) - math.pi
+    assert np.max(np.abs(err)) < 0.02
+    assert_allclose(ref.pose(ref.duration + 5.0), ref.poses[-1])
