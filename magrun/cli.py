@@ -13,6 +13,7 @@ naming the file (and line where there is one); it never prints a traceback.
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -322,13 +323,19 @@ def track(
             "max_abs_current_a": float(np.abs(log.currents).max()),
             "wall_s": wall,
         }
+        # NaN (no prediction: the PID) is written as JSON null, never as a bare NaN
+        row = {k: None if isinstance(v, float) and math.isnan(v) else v for k, v in row.items()}
         results.append(row)
         if not as_json:
+            pred = (
+                f"{row['rms_prediction_position_mm']:.3f} mm"
+                f" {row['rms_prediction_orientation_deg']:.2f}°"
+                if row["rms_prediction_position_mm"] is not None
+                else "none"
+            )
             click.echo(
                 f"{method:>9}: RMS {row['rms_position_mm']:.3f} mm"
-                f" {row['rms_orientation_deg']:.2f}°"
-                f"  prediction {row['rms_prediction_position_mm']:.3f} mm"
-                f" {row['rms_prediction_orientation_deg']:.2f}°"
+                f" {row['rms_orientation_deg']:.2f}°  prediction {pred}"
                 f"  solve median {row['median_solve_ms']:.1f} ms"
                 f"  failed {row['failed_solves']}/{row['ticks']}"
             )

@@ -169,3 +169,45 @@ def test_fit_refuses_maps_made_for_another_coil_system(runner: CliRunner, tmp_pa
         ],
     )
     assert fitted.exit_code == 0, fitted.output
+
+
+def test_track_json_reports_errors_per_method(runner: CliRunner) -> None:
+    result = runner.invoke(cli, ["track", "baseline2", "baseline3", "--duration", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert [r["method"] for r in doc["results"]] == ["baseline2", "baseline3"]
+    pid, lmpc = doc["results"]
+    assert pid["rms_prediction_position_mm"] is None  # the PID predicts nothing: null, not NaN
+    assert lmpc["rms_prediction_position_mm"] >= 0
+    for r in doc["results"]:
+        assert r["ticks"] == 51
+        assert 0 <= r["rms_position_mm"] < 5
+        assert r["max_abs_current_a"] <= 30
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["track", "nmpc9"], "unknown method(s) nmpc9"),
+        (["track", "baseline2", "--robot", "rover"], "unknown robot 'rover'"),
+        (["track", "baseline2", "--speed-mm-s", "0"], "--speed-mm-s must be positive"),
+        (["bench", "nmpc", "--ticks", "1"], "--ticks must be at least 2"),
+    ],
+)
+def test_control_verbs_reject_bad_input(runner: CliRunner, args: list[str], message: str) -> None:
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 2
+    assert message in result.output
+    assert "Traceback" not in result.output
+
+
+def test_bench_nmpc_json(runner: CliRunner) -> None:
+    result = runner.invoke(cli, ["bench", "nmpc", "--ticks", "3", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    for model in ("zernike", "lookup_table"):
+        assert doc[model]["median_solve_ms"] > 0
+        assert doc[model]["failed_solves"] == 0
+    assert doc["ratio_lookup_table_to_zernike"] == pytest.approx(
+        doc["lookup_table"]["median_solve_ms"] / doc["zernike"]["median_solve_ms"]
+    )
