@@ -93,24 +93,20 @@ class KalmanPoseFilter(Estimator):
 class MeasurementOrPrediction(Estimator):
     """Baselines 1, 3, 4: the measurement when one arrives, else the controller's prediction."""
 
+    use_prediction = True
+
     def reset(self, pose: FloatArray) -> None:
         self._last = np.asarray(pose, dtype=np.float64).copy()
 
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
         if measurement is not None:
             self._last = np.asarray(measurement, dtype=np.float64).copy()
-        elif prediction is not None:
+        elif prediction is not None and self.use_prediction:
             self._last = np.asarray(prediction, dtype=np.float64).copy()
         return self._last.copy()
 
 
-class HoldLastMeasurement(Estimator):
+class HoldLastMeasurement(MeasurementOrPrediction):
     """Baseline 2 (PID): the latest measurement, held until the next one (no prediction)."""
 
-    def reset(self, pose: FloatArray) -> None:
-        self._last = np.asarray(pose, dtype=np.float64).copy()
-
-    def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
-        if measurement is not None:
-            self._last = np.asarray(measurement, dtype=np.float64).copy()
-        return self._last.copy()
+    use_prediction = False

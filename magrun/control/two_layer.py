@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time
+from abc import abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +29,7 @@ from numpy.typing import NDArray
 from scipy.linalg import expm
 from scipy.optimize import lsq_linear
 
-from magrun.control.allocation import AllocationConfig, allocate
+from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
 from magrun.control.base import ControllerStatus, Plan, Planner, angle_near
 from magrun.field.model import PlanarFieldModel
 from magrun.robot import RobotParams, wrap_angle
@@ -75,8 +76,9 @@ class TwoLayerPlanner(Planner):
         self.max_current = coils.max_current
         self.max_change = coils.max_slew_rate * dt
 
+    @abstractmethod
     def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
-        raise NotImplementedError
+        """The high layer: force (N) and torque (N m) wanted at this tick, shape (3,)."""
 
     def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
         t0 = time.perf_counter()
@@ -98,8 +100,6 @@ class TwoLayerPlanner(Planner):
         return Plan(currents, predicted, ControllerStatus(time.perf_counter() - t0))
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
-        from magrun.control.allocation import wrench_matrix
-
         A, _ = wrench_matrix(self.model, state[:2], float(state[2]), self.robot.moment)
         return self._predict_with_wrench(state, A @ currents)
 
