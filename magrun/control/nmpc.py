@@ -21,7 +21,7 @@ Qp and P per mm², qθ and qθ,N per rad², R and S per u².
 Default weights follow the paper's tuning note, ‖R‖ = 2‖S‖ and ‖Qp‖ = 10‖R‖, in these units
 (R = I₈, S = 0.5 I₈, Qp = P = 10 I₂). The paper does not state its units, and the ratio only
 means something with them: with currents in amperes instead (the same numbers per A², a
-current penalty 900 times heavier) the robot lags the S-trajectory by ~1.7 mm on the
+current penalty 900 times heavier) the robot lags the S-trajectory by 1.7–1.9 mm RMS on the
 simulated rig; with normalised currents it tracks to a few hundredths of a millimetre.
 
 On failure (no convergence, non-finite output) the plan falls back to the
