@@ -265,6 +265,13 @@ def discrete_step(
     return state
 
 
+def drag_matrix(params: RobotParams, theta: float) -> FloatArray:
+    """Translational drag in the workspace frame, R(θ) diag(d∥, d⊥) R(θ)ᵀ, N s/m, shape (2, 2)."""
+    c, s = math.cos(theta), math.sin(theta)
+    R = np.array([[c, -s], [s, c]])
+    return R @ np.diag([params.drag_parallel, params.drag_perpendicular]) @ R.T
+
+
 def state_derivative(
     state: ArrayLike, B: ArrayLike, G: ArrayLike, params: RobotParams
 ) -> FloatArray:
@@ -275,9 +282,7 @@ def state_derivative(
     x = np.asarray(state, dtype=np.float64)
     Bv, Gv = np.asarray(B, dtype=np.float64), np.asarray(G, dtype=np.float64)
     (fx, fy), tq = magnetic_wrench(x[2], params.moment, Bv, Gv)
-    R = np.array([[math.cos(x[2]), -math.sin(x[2])], [math.sin(x[2]), math.cos(x[2])]])
-    D = R @ np.diag([params.drag_parallel, params.drag_perpendicular]) @ R.T
-    acc = (np.array([fx, fy]) - D @ x[3:5]) / params.mass
+    acc = (np.array([fx, fy]) - drag_matrix(params, float(x[2])) @ x[3:5]) / params.mass
     alpha = (tq - params.drag_rotation * x[5]) / params.inertia
     return np.array([x[3], x[4], x[5], acc[0], acc[1], alpha])
 

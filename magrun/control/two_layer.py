@@ -32,7 +32,7 @@ from scipy.optimize import lsq_linear
 from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
 from magrun.control.base import ControllerStatus, Plan, Planner, angle_near
 from magrun.field.model import PlanarFieldModel
-from magrun.robot import RobotParams, wrap_angle
+from magrun.robot import RobotParams, drag_matrix, wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -42,12 +42,9 @@ def linear_model(robot: RobotParams, theta: float, dt: float) -> tuple[FloatArra
 
     State ``[x, y, θ, vx, vy, ω]`` and input ``[Fx, Fy, τ]``, SI.
     """
-    c, s = np.cos(theta), np.sin(theta)
-    R = np.array([[c, -s], [s, c]])
-    D = R @ np.diag([robot.drag_parallel, robot.drag_perpendicular]) @ R.T
     Ac = np.zeros((6, 6))
     Ac[0:3, 3:6] = np.eye(3)
-    Ac[3:5, 3:5] = -D / robot.mass
+    Ac[3:5, 3:5] = -drag_matrix(robot, theta) / robot.mass
     Ac[5, 5] = -robot.drag_rotation / robot.inertia
     Bc = np.zeros((6, 3))
     Bc[3:5, 0:2] = np.eye(2) / robot.mass
@@ -159,17 +156,14 @@ class PIDPlanner(TwoLayerPlanner):
         ki = np.array([cfg.ki_position] * 2 + [cfg.ki_angle])
         kd = np.array([cfg.kd_position] * 2 + [cfg.kd_angle])
         v_cmd = ff + kp * e + ki * self._integral + kd * de
-        c, s = np.cos(state[2]), np.sin(state[2])
-        R = np.array([[c, -s], [s, c]])
-        D = R @ np.diag([self.robot.drag_parallel, self.robot.drag_perpendicular]) @ R.T
+        D = drag_matrix(self.robot, float(state[2]))
         return np.concatenate([D @ v_cmd[:2], [self.robot.drag_rotation * v_cmd[2]]])
-
-    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
-        p = super().plan(state, reference, previous)
-        return Plan(p.currents, np.full(6, np.nan), p.status)
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         return np.full(6, np.nan)
+
+    def _predict_with_wrench(self, state: FloatArray, wrench: FloatArray) -> FloatArray:
+        return np.full(6, np.nan)  # a PID makes no prediction
 
 
 @dataclass(frozen=True)
@@ -197,7 +191,17 @@ class LinearMPCPlanner(TwoLayerPlanner):
         allocation: AllocationConfig | None = None,
     ) -> None:
         super().__init__(field_model, robot, dt, allocation)
-        self.config = config or LinearMPCConfig()
+        self.config = cfg = config or LinearMPCConfig()
+        N = cfg.horizon
+        # constant parts of the condensed least squares: pose rows of the stacked states,
+        # tracking weights, and the wrench-difference operator
+        self._select = np.zeros((3 * N, 6 * N))
+        for k in range(N):
+            self._select[3 * k : 3 * k + 3, 6 * k : 6 * k + 3] = np.eye(3)
+        wq = np.sqrt(np.array([cfg.q_position / 1e-6, cfg.q_position / 1e-6, cfg.q_angle]))
+        self._weights = np.tile(wq, N)
+        self._diff = np.eye(3 * N) - np.eye(3 * N, k=-3)
+        self._limit = np.array([cfg.max_force, cfg.max_force, cfg.max_torque])
         self.reset()
 
     def reset(self) -> None:
@@ -206,7 +210,7 @@ class LinearMPCPlanner(TwoLayerPlanner):
     def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
         cfg, N = self.config, self.config.horizon
         Ad, Bd = linear_model(self.robot, float(state[2]), self.dt)
-        limit = np.array([cfg.max_force, cfg.max_force, cfg.max_torque])
+        limit = self._limit
         Bn = Bd * limit  # inputs normalised by their limits
         # condensed prediction: X_k = Ad^k x0 + Σ_j Ad^(k-1-j) Bn u_j, k = 1 … N
         powers = [np.eye(6)]
@@ -223,12 +227,7 @@ class LinearMPCPlanner(TwoLayerPlanner):
         for k in range(N):  # the reference angle nearest the running estimate
             ref[k, 2] = angle_near(ref[k, 2], th)
             th = ref[k, 2]
-        sel = np.zeros((3 * N, 6 * N))
-        for k in range(N):
-            sel[3 * k : 3 * k + 3, 6 * k : 6 * k + 3] = np.eye(3)
-        wq = np.sqrt(np.array([cfg.q_position / 1e-6, cfg.q_position / 1e-6, cfg.q_angle]))
-        Wq = np.tile(wq, N)[:, None]
-        diff = np.eye(3 * N) - np.eye(3 * N, k=-3)
+        sel, diff, Wq = self._select, self._diff, self._weights[:, None]
         prev = np.zeros(3 * N)
         prev[:3] = self._last_wrench / limit
         M = np.vstack(
