@@ -4,10 +4,17 @@
     >>> log = run_trial(controller, rig, s_trajectory())       # doctest: +SKIP
     >>> log.rms_position_mm, log.rms_orientation_deg           # doctest: +SKIP
 
-``feedback(t, pose)`` turns the actual pose into the controller's measurement, or ``None``
-when no frame arrives at this tick; :func:`perfect_feedback` passes every pose through. The
-runner (protocols, recording) builds on this loop; it records everything :class:`TrialLog`
-holds.
+One tick::
+
+    rig.observe() ──► actual pose (+ camera frame)
+    tracker(frame) ──► tracked pose, or None when lost       (no tracker: the actual pose)
+    feedback(t, tracked) ──► measured pose, or None          (e.g. FluoroscopyMimic)
+    controller.step(measured, reference window) ──► currents ──► rig.apply ──► rig.advance
+
+``feedback(t, pose)`` turns the camera pose into the controller's measurement, or ``None``
+when no fluoroscopy frame arrives at this tick; :func:`perfect_feedback` passes every pose
+through. The runner (protocols, recording) builds on this loop; it records everything
+:class:`TrialLog` holds.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,11 +33,19 @@ from magrun.robot import wrap_angle
 from magrun.scene import Trajectory
 
 FloatArray = NDArray[np.float64]
-Feedback = Callable[[float, FloatArray], FloatArray | None]
+Feedback = Callable[[float, FloatArray | None], FloatArray | None]
 
 
-def perfect_feedback(t: float, pose: FloatArray) -> FloatArray | None:
-    """Every tick gets the exact pose."""
+class PoseTracker(Protocol):
+    """What the loop needs of a camera tracker (:class:`magrun.tracking.tracker.Tracker`)."""
+
+    def reset(self) -> None: ...
+
+    def __call__(self, frame: NDArray[np.uint8]) -> FloatArray | None: ...
+
+
+def perfect_feedback(t: float, pose: FloatArray | None) -> FloatArray | None:
+    """Every tick gets the camera pose as it is."""
     return pose
 
 
@@ -39,6 +55,7 @@ class TrialLog:
 
     t: FloatArray  # (n,)
     actual: FloatArray  # (n, 3)
+    tracked: FloatArray  # (n, 3), the camera pose; NaN where the tracker lost the robot
     desired: FloatArray  # (n, 3)
     measured: FloatArray  # (n, 3), NaN where no measurement arrived
     estimated: FloatArray  # (n, 3)
@@ -85,18 +102,27 @@ def run_trial(
     horizon: int = 20,
     duration: float | None = None,
     progress: Callable[[int, int], None] | None = None,
+    tracker: PoseTracker | None = None,
 ) -> TrialLog:
-    """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose."""
+    """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
+
+    With a ``tracker``, the controller's feedback comes from the rig's camera frames (the rig
+    must have a camera); without one, from the actual pose. Give a fresh ``feedback`` per
+    trial (a :class:`~magrun.tracking.fluoroscopy.FluoroscopyMimic` keeps its schedule).
+    """
     dt = controller.dt
     total = reference.duration + 1.0 if duration is None else duration
     n = math.floor(total / dt + 1e-9) + 1
     start = reference.pose(0.0)
     rig.reset(start)
     controller.reset(start)
+    if tracker is not None:
+        tracker.reset()
     n_ch = controller.n_channels
     log = TrialLog(
         t=np.zeros(n),
         actual=np.zeros((n, 3)),
+        tracked=np.full((n, 3), np.nan),
         desired=np.zeros((n, 3)),
         measured=np.full((n, 3), np.nan),
         estimated=np.zeros((n, 3)),
@@ -108,12 +134,20 @@ def run_trial(
     offsets = np.arange(horizon + 1) * dt
     for k in range(n):
         obs = rig.observe()
-        z = feedback(obs.t, obs.pose)
+        if tracker is None:
+            camera_pose: FloatArray | None = obs.pose
+        elif obs.frame is None:
+            raise ValueError("a tracker needs camera frames: give the rig a camera")
+        else:
+            camera_pose = tracker(obs.frame)
+        z = feedback(obs.t, camera_pose)
         window = reference.pose(obs.t + offsets)
         out = controller.step(z, window)
         applied = rig.apply(out.currents)
         log.t[k] = obs.t
         log.actual[k] = obs.pose
+        if camera_pose is not None:
+            log.tracked[k] = camera_pose
         log.desired[k] = window[0]
         if z is not None:
             log.measured[k] = z

@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, Literal
 
 import casadi as ca
 import numpy as np
@@ -72,6 +72,9 @@ class RobotSpec(BaseModel):
     drag_parallel_n_s_per_m: float = Field(gt=0)
     drag_perpendicular_n_s_per_m: float = Field(gt=0)
     drag_rotation_n_m_s: float = Field(gt=0)
+    appearance: Literal["two_tone", "capsule"] = Field(
+        description="How the camera sees the robot (magrun.tracking.render)."
+    )
 
 
 class RobotsFile(RootModel[dict[str, RobotSpec]]):
@@ -91,6 +94,7 @@ class RobotParams:
     drag_parallel: float  # N s/m, along the body axis
     drag_perpendicular: float  # N s/m, across the body axis
     drag_rotation: float  # N m s
+    appearance: str = "two_tone"  # camera look: "two_tone" (magnet robot) or "capsule"
 
     @classmethod
     def from_spec(cls, name: str, spec: RobotSpec) -> RobotParams:
@@ -105,6 +109,7 @@ class RobotParams:
             drag_parallel=spec.drag_parallel_n_s_per_m,
             drag_perpendicular=spec.drag_perpendicular_n_s_per_m,
             drag_rotation=spec.drag_rotation_n_m_s,
+            appearance=spec.appearance,
         )
 
     def scaled(self, *, mass: float = 1.0, drag: float = 1.0, moment: float = 1.0) -> RobotParams:

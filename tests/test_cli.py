@@ -211,3 +211,55 @@ def test_bench_nmpc_json(runner: CliRunner) -> None:
     assert doc["ratio_lookup_table_to_zernike"] == pytest.approx(
         doc["lookup_table"]["median_solve_ms"] / doc["zernike"]["median_solve_ms"]
     )
+
+
+def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:
+    """UNet tracking on rendered frames, 7.5 Hz, σ 2 mm: 16 measurements in 2 s, none lost."""
+    args = ["track", "baseline2", "--duration", "2", "--camera", "--rate-hz", "7.5"]
+    result = runner.invoke(cli, [*args, "--sigma-mm", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["feedback"] == {"source": "unet camera tracking", "rate_hz": 7.5, "sigma_mm": 2.0}
+    [row] = doc["results"]
+    assert row["measurements"] == 16
+    assert row["tracking_lost"] == 0
+
+
+def test_tracker_train_then_eval_json(runner: CliRunner, tmp_path) -> None:
+    out = tmp_path / "w.npz"
+    trained = runner.invoke(
+        cli, ["tracker", "train", "--steps", "2", "--batch", "2", "--out", str(out)]
+    )
+    assert trained.exit_code == 0, trained.output
+    result = runner.invoke(
+        cli,
+        ["tracker", "eval", "--weights", str(out), "--frames", "10", "--search-frames", "2",
+         "--json"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["trained"]["steps"] == 2
+    assert doc["tracking"]["frames"] == 10
+    assert doc["search"]["frames"] == 2
+    assert set(doc["per_robot"]) == {"magnet", "drug_delivery"}
+    assert 0 <= doc["tracking"]["failure_rate"] <= 1
+    assert doc["tracking"]["median_ms"] > 0
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["tracker", "train", "--labels", "{junk}"], "fine-tuning needs --images"),
+        (["tracker", "eval", "--weights", "{junk}"], "cannot load weights"),
+        (["track", "baseline2", "--rate-hz", "0"], "--rate-hz must be positive"),
+    ],
+)
+def test_tracker_verbs_reject_bad_input(
+    runner: CliRunner, tmp_path, args: list[str], message: str
+) -> None:
+    junk = tmp_path / "junk.npz"
+    junk.write_text("not weights\n")
+    result = runner.invoke(cli, [a.format(junk=junk) for a in args])
+    assert result.exit_code == 2
+    assert message in result.output
+    assert "Traceback" not in result.output

@@ -6,7 +6,7 @@ runner drives at the control period::
     with SimRig(...) as rig:
         rig.reset(start_pose)
         for k in range(n_ticks):
-            obs = rig.observe()                   # time, actual pose (+ camera frame later)
+            obs = rig.observe()                   # time, actual pose, camera frame
             applied = rig.apply(currents)         # what the amplifiers will actually drive
             rig.advance(dt)                       # simulate (or wait) one control period
 
@@ -59,11 +59,14 @@ class Observation:
         on the hardware rig.
     in_contact : bool
         Whether the robot touched a wall since the previous observation (simulation only).
+    frame : ndarray, shape (H, W, 3), uint8, or None
+        The camera frame (RGB) taken at ``t``, when the rig has a camera.
     """
 
     t: float
     pose: FloatArray
     in_contact: bool = False
+    frame: NDArray[np.uint8] | None = None
 
 
 class Rig(ABC):

@@ -16,6 +16,10 @@ What the controllers do not know, and the plant does:
 - the amplifiers ramp each current toward its command at the slew limit instead of stepping;
 - walls stop the robot (inelastic, frictionless contact of its cross-section disk).
 
+With a ``camera``, every observation carries a rendered top-view frame of the true pose
+(:mod:`magrun.tracking.render`: the robot's look, the walls, blur, lighting, sensor noise),
+seeded with the trial, for the tracker to work on as it would on the real rig.
+
 The plant integrates :func:`magrun.robot.discrete_step` on a fine step (1 ms by default),
 re-evaluating the field and the ramping currents every step.
 """
@@ -34,6 +38,8 @@ from magrun.field.grid import ChannelGrid
 from magrun.rigs.base import Observation, Rig, clamp_currents
 from magrun.robot import RobotParams, discrete_step, load_robot
 from magrun.scene import Walls
+from magrun.tracking.camera import Camera, CameraConfig
+from magrun.tracking.render import Renderer
 
 FloatArray = NDArray[np.float64]
 
@@ -80,9 +86,11 @@ class SimRig(Rig):
     perturbation : Perturbation
         Per-trial parameter spread; default :data:`DEFAULT_PERTURBATION`.
     seed : int
-        Seeds the parameter draw.
+        Seeds the parameter draw and the camera's lighting and noise.
     fine_step : float
         Integration step, s.
+    camera : CameraConfig, optional
+        Render a camera frame with every observation; default: no frames.
     """
 
     def __init__(
@@ -94,6 +102,7 @@ class SimRig(Rig):
         perturbation: Perturbation = DEFAULT_PERTURBATION,
         seed: int = 0,
         fine_step: float = 1e-3,
+        camera: CameraConfig | None = None,
     ) -> None:
         if grid.channel_names != coils.channel_names:
             raise ValueError("the field grid was built for other channels than the coil system")
@@ -108,6 +117,9 @@ class SimRig(Rig):
             robot, coils.n_channels, np.random.default_rng(seed)
         )
         self.fine_step = fine_step
+        self.camera = Camera(camera) if camera is not None else None
+        self.seed = seed
+        self._renderer: Renderer | None = None
         self._contact_radius = robot.diameter / 2
         self.reset([0.0, 0.0, 0.0])
 
@@ -118,10 +130,14 @@ class SimRig(Rig):
         walls: Walls | None = None,
         perturbation: Perturbation = DEFAULT_PERTURBATION,
         seed: int = 0,
+        camera: CameraConfig | None = None,
     ) -> SimRig:
         """The paper's rig with the shipped reference maps."""
         coils = CoilSystem.load()
-        return cls(coils, ChannelGrid.load(coils), load_robot(robot), walls, perturbation, seed)
+        return cls(
+            coils, ChannelGrid.load(coils), load_robot(robot), walls, perturbation, seed,
+            camera=camera,
+        )  # fmt: skip
 
     def reset(self, pose: ArrayLike) -> None:
         p = np.asarray(pose, dtype=np.float64)
@@ -132,9 +148,13 @@ class SimRig(Rig):
         self.driven = np.zeros(self.coils.n_channels)  # what the amplifiers drive now
         self.target = np.zeros(self.coils.n_channels)  # what they ramp toward
         self._contact = False
+        if self.camera is not None:  # the same frames (lighting, noise) on every reset
+            self._renderer = Renderer(self.camera, self.robot, self.walls, seed=self.seed)
 
     def observe(self) -> Observation:
-        obs = Observation(t=self.t, pose=self.state[:3].copy(), in_contact=self._contact)
+        pose = self.state[:3].copy()
+        frame = self._renderer.render(pose) if self._renderer is not None else None
+        obs = Observation(t=self.t, pose=pose, in_contact=self._contact, frame=frame)
         self._contact = False
         return obs
 

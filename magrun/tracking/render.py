@@ -1,0 +1,270 @@
+"""Synthetic top-view camera frames of the workspace (OpenCV), with exact keypoint labels.
+
+What a frame shows, back to front:
+
+- the fluid in the container, a light blue-grey;
+- walls (the container's, the spine phantom's channel) as 1 mm agarose-coloured bands;
+- the robot, as the paper describes it: the **magnet robot** is a 16 × 2.8 mm cylinder painted
+  pink on its front (north-pole) half and yellow on its rear half, lit along its axis; the
+  **drug-delivery robot** is a translucent 7.4 × 2.8 mm resin capsule with its dark disk
+  magnet in the front cap and the blue drug in the rest.
+
+Then the camera model: Gaussian blur (``blur_px``), lighting (a per-trial gain, white balance,
+illumination gradient and vignetting, plus frame-to-frame flicker) and Gaussian sensor noise.
+Shapes are drawn by exact area coverage (4 × 4 supersampling), so a label sits on the drawn
+robot to well under the tracker's error. Frames are ``uint8`` RGB arrays, shape (H, W, 3).
+
+    >>> from magrun.robot import load_robot
+    >>> r = Renderer(Camera(), load_robot("magnet"), seed=0)
+    >>> r.render([0.0, 0.0, 0.5]).shape
+    (256, 256, 3)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magrun.robot import RobotParams
+from magrun.scene import Walls
+from magrun.tracking.camera import Camera
+
+FloatArray = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+_SHIFT = 4  # OpenCV fixed-point bits: coordinates at 1/16 px
+_ONE = 1 << _SHIFT
+_SUPERSAMPLE = 4  # shapes are rasterised at 4 × 4 samples per pixel
+_ARC = 16  # polygon edges per half-circle
+
+FLUID = (0.74, 0.79, 0.82)
+AGAROSE = (0.93, 0.88, 0.74)
+PINK = (0.94, 0.42, 0.64)
+YELLOW = (0.96, 0.84, 0.22)
+SHELL_EDGE = (0.55, 0.58, 0.60)
+SHELL = (0.97, 0.97, 0.96)
+DRUG = (0.22, 0.42, 0.86)
+MAGNET = (0.20, 0.20, 0.23)
+WALL_THICKNESS = 1e-3  # m, the band painted for a wall segment
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """One trial's lighting: ``image = gain · illumination(u, v) · scene``.
+
+    ``gain`` (3,) is exposure times white balance per RGB channel; the illumination is
+    ``1 + gradient · q − vignette · |q|²`` over normalised image coordinates q ∈ [−1, 1]².
+    """
+
+    gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    gradient: tuple[float, float] = (0.0, 0.0)
+    vignette: float = 0.0
+    flicker: float = 0.0  # σ of the per-frame relative gain change
+
+    @classmethod
+    def draw(cls, rng: np.random.Generator, amount: float) -> Lighting:
+        """Random lighting with variation ``amount`` (see :class:`CameraConfig`)."""
+        exposure = 1.0 + rng.uniform(-amount, amount)
+        balance = 1.0 + rng.uniform(-amount / 3, amount / 3, 3)
+        g = exposure * balance
+        angle = rng.uniform(0, 2 * np.pi)
+        slope = rng.uniform(0, amount / 2)
+        return cls(
+            gain=(float(g[0]), float(g[1]), float(g[2])),
+            gradient=(float(slope * np.cos(angle)), float(slope * np.sin(angle))),
+            vignette=float(rng.uniform(0, amount)),
+            flicker=amount / 5,
+        )
+
+    def field(self, shape: tuple[int, int]) -> F32:
+        """Illumination times gain, shape (H, W, 3), float32."""
+        h, w = shape
+        qy, qx = np.meshgrid(
+            np.linspace(-1, 1, h, dtype=np.float32),
+            np.linspace(-1, 1, w, dtype=np.float32),
+            indexing="ij",
+        )
+        illum = 1 + self.gradient[0] * qx - self.gradient[1] * qy
+        illum -= self.vignette * (qx**2 + qy**2) / 2
+        return illum[..., None] * np.asarray(self.gain, dtype=np.float32)
+
+
+def _fixed(uv: FloatArray) -> NDArray[np.int32]:
+    return np.round(uv * _ONE).astype(np.int32)
+
+
+def inset(polygon: FloatArray, delta: float) -> FloatArray:
+    """The convex ``polygon`` (n, 2) with every edge moved inward by ``delta``."""
+    p = np.asarray(polygon, dtype=np.float64)
+    edge = np.roll(p, -1, axis=0) - p
+    area2 = float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+    sign = 1.0 if area2 > 0 else -1.0  # counter-clockwise (in u, v): the inside is to the left
+    normal = sign * np.column_stack([-edge[:, 1], edge[:, 0]])
+    normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-12)[:, None]
+    before = np.roll(normal, 1, axis=0)  # the edge ending at each vertex
+    # offset lines meet at v + δ (n₁ + n₂) / (1 + n₁·n₂)
+    denom = np.maximum(1.0 + np.sum(before * normal, axis=1), 1e-6)
+    return p + delta * (before + normal) / denom[:, None]
+
+
+class _Canvas:
+    """An RGB float image that takes shapes with an opacity, in pixel coordinates.
+
+    Each shape is rasterised on a ×:data:`_SUPERSAMPLE` grid (pixel centres inside the shape)
+    and box-filtered down, so a pixel gets the fraction of it the shape covers: outlines and
+    centroids land within ~0.1 px (tests/test_tracking.py). OpenCV's own anti-aliasing
+    dilates a filled shape by about half a pixel, unevenly, which put the labels off the
+    drawn robot by up to 0.4 px.
+    Shapes are drawn into a window (``origin``, the image's size) of the frame, so the cost
+    follows the shape's size, not the frame's.
+    """
+
+    def __init__(self, image: F32, origin: tuple[int, int] = (0, 0)) -> None:
+        self.image = image
+        self.origin = np.array(origin, dtype=np.float64)
+        h, w = image.shape[:2]
+        self._mask = np.zeros((h * _SUPERSAMPLE, w * _SUPERSAMPLE), dtype=np.uint8)
+
+    def _fill(self, uv: FloatArray) -> None:
+        """Rasterise the convex polygon ``uv`` (frame px) into the fine mask."""
+        # fine pixel j's centre is at coarse coordinate (j + 0.5)/S − 0.5
+        fine = (uv - self.origin + 0.5) * _SUPERSAMPLE - 0.5
+        # OpenCV fills every pixel the outline touches, ~½ px beyond it: inset by the 0.45
+        # fine px that makes the filled area match the polygon's over random shapes
+        cv2.fillConvexPoly(self._mask, _fixed(inset(fine, 0.45)), 255, cv2.LINE_8, _SHIFT)
+
+    def _blend(self, colour: tuple[float, float, float], opacity: float) -> None:
+        h, w = self.image.shape[:2]
+        cover = cv2.resize(self._mask, (w, h), interpolation=cv2.INTER_AREA)
+        a = cover.astype(np.float32) * np.float32(opacity / 255.0)
+        self.image += a[..., None] * (np.asarray(colour, dtype=np.float32) - self.image)
+        self._mask[:] = 0
+
+    def polygon(self, uv: FloatArray, colour: tuple[float, float, float], opacity: float) -> None:
+        self._fill(uv)
+        self._blend(colour, opacity)
+
+    def capsule(
+        self,
+        a: FloatArray,
+        b: FloatArray,
+        radius: float,
+        colour: tuple[float, float, float],
+        opacity: float,
+    ) -> None:
+        """The set of points within ``radius`` px of segment a–b (a stadium)."""
+        # one convex polygon: two half-circles of _ARC vertices each, the radius scaled so the
+        # polygon's area is the round shape's (OpenCV's filled circles cover ~π(r + ½)²)
+        d = b - a
+        angle = math.atan2(d[1], d[0])
+        k = np.arange(_ARC + 1) / _ARC * math.pi
+        r = radius * math.sqrt(math.pi / (_ARC * math.sin(math.pi / _ARC)))
+        arc_b = angle - math.pi / 2 + k
+        arc_a = angle + math.pi / 2 + k
+        outline = np.concatenate(
+            [b + r * np.column_stack([np.cos(arc_b), np.sin(arc_b)]),
+             a + r * np.column_stack([np.cos(arc_a), np.sin(arc_a)])]
+        )  # fmt: skip
+        self._fill(outline)
+        self._blend(colour, opacity)
+
+
+def draw_walls(image: F32, camera: Camera, walls: Walls) -> None:
+    """Paint every wall segment as a band of :data:`WALL_THICKNESS` (in place)."""
+    canvas = _Canvas(image)
+    half = WALL_THICKNESS / 2 * camera.scale
+    for seg in walls.segments:
+        a, b = camera.to_pixel(seg)
+        canvas.capsule(a, b, half, AGAROSE, 1.0)
+
+
+def draw_robot(image: F32, camera: Camera, pose: ArrayLike, robot: RobotParams) -> None:
+    """Paint the robot at ``pose`` (x, y, θ; m, rad) onto ``image`` (in place)."""
+    x, y, th = np.asarray(pose, dtype=np.float64)
+    s = camera.scale
+    half_l, radius = robot.length / 2 * s, robot.diameter / 2 * s
+    c = camera.to_pixel([x, y])
+    u = np.array([np.cos(th), -np.sin(th)])  # image v points down: world +y is −v
+    n = np.array([-u[1], u[0]])
+    h, w = image.shape[:2]
+    reach = half_l + radius + 3
+    lo = np.clip(np.floor(c - reach), 0, [w, h]).astype(int)
+    hi = np.clip(np.ceil(c + reach) + 1, 0, [w, h]).astype(int)
+    if np.any(hi - lo <= 0):
+        return  # out of view
+    window = image[lo[1] : hi[1], lo[0] : hi[0]]
+    canvas = _Canvas(window, (int(lo[0]), int(lo[1])))
+
+    def rect(s0: float, s1: float, half_width: float) -> FloatArray:
+        return np.array(
+            [c + s0 * u + half_width * n, c + s1 * u + half_width * n,
+             c + s1 * u - half_width * n, c + s0 * u - half_width * n]
+        )  # fmt: skip
+
+    if robot.appearance == "capsule":
+        cap = half_l - radius
+        canvas.capsule(c - cap * u, c + cap * u, radius, SHELL_EDGE, 0.75)
+        inner = max(radius - 0.3e-3 * s, 0.5)
+        canvas.capsule(c - cap * u, c + cap * u, inner, SHELL, 0.8)
+        canvas.polygon(rect(-cap, 0.25 * half_l, 0.8 * inner), DRUG, 0.65)
+        magnet_at = half_l - radius * 0.9
+        canvas.polygon(
+            rect(magnet_at - 0.5e-3 * s, magnet_at + 0.5e-3 * s, 0.85 * inner), MAGNET, 0.95
+        )
+    else:
+        canvas.polygon(rect(-half_l, 0.0, radius), YELLOW, 1.0)
+        canvas.polygon(rect(0.0, half_l, radius), PINK, 1.0)
+        canvas.polygon(rect(-half_l, half_l, radius / 3), (1.0, 1.0, 1.0), 0.3)  # specular line
+
+
+def finish(
+    image: F32, camera: Camera, lighting: Lighting, illumination: F32, rng: np.random.Generator
+) -> NDArray[np.uint8]:
+    """Camera model on a rendered scene: blur, lighting with flicker, sensor noise → uint8."""
+    cfg = camera.config
+    if cfg.blur_px > 0:
+        image = np.asarray(cv2.GaussianBlur(image, (0, 0), cfg.blur_px), dtype=np.float32)
+    flicker = np.float32(1.0 + lighting.flicker * rng.standard_normal())
+    out = image * illumination * flicker
+    if cfg.noise > 0:
+        out += rng.standard_normal(out.shape, dtype=np.float32) * np.float32(cfg.noise)
+    return np.clip(out * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+class Renderer:
+    """Frames of one trial: fixed camera, robot and walls, lighting drawn once from ``seed``.
+
+    Parameters
+    ----------
+    camera : Camera
+        What the frame covers, and the camera model.
+    robot : RobotParams
+        Size and ``appearance`` of the robot.
+    walls : Walls, optional
+        Wall segments to paint (the container, a phantom channel).
+    seed : int
+        Seeds the lighting and the per-frame noise, so a trial's frames are reproducible.
+    """
+
+    def __init__(
+        self, camera: Camera, robot: RobotParams, walls: Walls | None = None, seed: int = 0
+    ) -> None:
+        self.camera = camera
+        self.robot = robot
+        self.rng = np.random.default_rng(seed)
+        self.lighting = Lighting.draw(self.rng, camera.config.lighting)
+        self._illumination = self.lighting.field(camera.shape)
+        self._background = np.empty((*camera.shape, 3), dtype=np.float32)
+        self._background[:] = np.asarray(FLUID, dtype=np.float32)
+        if walls is not None:
+            draw_walls(self._background, camera, walls)
+
+    def render(self, pose: ArrayLike) -> NDArray[np.uint8]:
+        """The frame with the robot at ``pose`` (x, y, θ; m, rad): uint8 RGB, shape (H, W, 3)."""
+        image = self._background.copy()
+        draw_robot(image, self.camera, pose, self.robot)
+        return finish(image, self.camera, self.lighting, self._illumination, self.rng)

@@ -1,0 +1,239 @@
+"""Camera tracking: a frame in, the robot's pose (with a confidence) out.
+
+::
+
+    frame ─ 80 px window at the previous pose ─► UNet ─► 3 heat maps ─► candidate peaks
+            (whole frame when there is none)                               │
+    (x, y, θ), confidence ◄─ rigid fit ◄─ camera px → m ◄─ consistent tail, centre, head
+
+The tracker runs the UNet on a ``window_px``-square window (default 80 px, 32 mm; the model
+trained on 96 px crops) centred on the previous pose: the robot moves at most ~1 mm between
+frames, and the window keeps the per-frame cost low whatever the frame size. With no
+previous pose (first frame, or the robot was lost) it searches the whole frame with the
+same, fully convolutional network, then refines in a window. Each heat map may offer a few
+peaks; :func:`select_keypoints` takes the strongest three that form the robot. A result is
+rejected (``pose`` is ``None``) when a point's peak is below ``min_confidence``, or the
+tail-to-head span is not within 25 % of the robot's length.
+
+    >>> tracker = Tracker.default(Camera(), load_robot("magnet"))         # doctest: +SKIP
+    >>> tracker(frame).pose                                               # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from numpy.typing import ArrayLike, NDArray
+from torch import nn
+
+from magrun.robot import RobotParams
+from magrun.tracking.camera import Camera
+from magrun.tracking.keypoints import pose_from_keypoints
+from magrun.tracking.unet import (
+    KeypointUNet,
+    load_weights,
+    peak_candidates,
+    refine_peak,
+    to_input,
+)
+
+FloatArray = NDArray[np.float64]
+U8 = NDArray[np.uint8]
+
+
+def default_weights_path() -> Path:
+    """The shipped weights, trained by ``magrun tracker train`` (see the README)."""
+    return Path(str(resources.files("magrun") / "tracking" / "data" / "unet.npz"))
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """One frame's tracking.
+
+    Attributes
+    ----------
+    pose : ndarray, shape (3,), or None
+        ``(x, y, θ)`` in m and rad; ``None`` when the robot was not found.
+    confidence : float
+        The lowest of the three heat-map peaks (0–1).
+    keypoints : ndarray, shape (3, 2)
+        Tail, centre and head in frame pixels ``(u, v)``.
+    searched : bool
+        Whether this frame needed a whole-frame search.
+    """
+
+    pose: FloatArray | None
+    confidence: float
+    keypoints: FloatArray
+    searched: bool
+
+
+#: score penalty per unit of geometric inconsistency (see :func:`select_keypoints`)
+CONSISTENCY_WEIGHT = 3.0
+
+
+def select_keypoints(
+    candidates: list[tuple[NDArray[np.intp], FloatArray]], length_px: float
+) -> tuple[NDArray[np.intp], FloatArray]:
+    """The tail, centre and head peaks that best fit a robot of ``length_px``.
+
+    A small network can answer "an end of the yellow half" for both the tail and the centre
+    of the magnet robot; each map may then hold a second peak. Among all combinations of
+    candidate peaks (:func:`~magrun.tracking.unet.peak_candidates`), pick the one maximising
+
+        h_tail + h_centre + h_head − w · (|‖head − tail‖ − L| / L + 2 ‖centre − mid‖ / L)
+
+    (h peak heights, mid the tail–head midpoint, w = :data:`CONSISTENCY_WEIGHT`): the
+    strongest peaks, unless they do not form the robot. Returns the chosen pixels (3, 2)
+    and their heights (3,).
+    """
+    (tp, th), (cp, ch), (hp, hh) = candidates
+    t = tp[:, None, None].astype(np.float64)
+    c = cp[None, :, None].astype(np.float64)
+    h = hp[None, None, :].astype(np.float64)
+    span = np.linalg.norm(h - t, axis=-1)
+    off_centre = np.linalg.norm(c - (t + h) / 2, axis=-1)
+    bad = np.abs(span - length_px) / length_px + 2 * off_centre / length_px
+    score = th[:, None, None] + ch[None, :, None] + hh[None, None, :] - CONSISTENCY_WEIGHT * bad
+    i, j, k = np.unravel_index(int(np.argmax(score)), score.shape)
+    return np.array([tp[i], cp[j], hp[k]]), np.array([th[i], ch[j], hh[k]])
+
+
+def fuse_batch_norm(model: KeypointUNet) -> nn.Module:
+    """An inference copy of ``model`` with every BatchNorm folded into its convolution."""
+    fused = KeypointUNet(model.widths, model.head.out_channels)
+    fused.load_state_dict(model.state_dict())
+    fused.eval()
+    for block in (*fused.encoders, *fused.decoders):
+        assert isinstance(block, nn.Sequential)
+        layers = list(block)
+        out: list[nn.Module] = []
+        i = 0
+        while i < len(layers):
+            layer = layers[i]
+            nxt = layers[i + 1] if i + 1 < len(layers) else None
+            if isinstance(layer, nn.Conv2d) and isinstance(nxt, nn.BatchNorm2d):
+                out.append(nn.utils.fusion.fuse_conv_bn_eval(layer, nxt))
+                i += 2
+            else:
+                out.append(layer)
+                i += 1
+        block._modules.clear()
+        for k, m in enumerate(out):
+            block.add_module(str(k), m)
+    return fused.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+
+
+class Tracker:
+    """UNet keypoint tracker for one robot seen by one camera.
+
+    Parameters
+    ----------
+    model : KeypointUNet
+        Trained weights (see :meth:`default`).
+    camera : Camera
+        Frame size and the px ↔ m mapping (the calibration, on a real rig).
+    robot : RobotParams
+        The tracked robot (its length fixes the fiducials' spacing).
+    min_confidence : float
+        Smallest accepted heat-map peak.
+    window_px : int
+        Side of the window tracked around the previous pose (a multiple of 8), px. It must
+        hold the robot (the magnet robot is 40 px long at 2.5 px/mm) plus its motion
+        between frames.
+    """
+
+    def __init__(
+        self,
+        model: KeypointUNet,
+        camera: Camera,
+        robot: RobotParams,
+        min_confidence: float = 0.3,
+        window_px: int = 80,
+    ) -> None:
+        self.net = fuse_batch_norm(model)
+        self.stride = model.stride
+        self.camera = camera
+        self.robot = robot
+        self.min_confidence = min_confidence
+        if window_px % self.stride or window_px < 4 * self.stride:
+            raise ValueError(f"window_px must be a multiple of {self.stride}, ≥ {4 * self.stride}")
+        self.window_px = window_px
+        self.last_pose: FloatArray | None = None
+
+    @classmethod
+    def default(
+        cls, camera: Camera, robot: RobotParams, weights: str | Path | None = None
+    ) -> Tracker:
+        """A tracker with the shipped weights (or those in ``weights``)."""
+        model, _ = load_weights(weights if weights is not None else default_weights_path())
+        return cls(model, camera, robot)
+
+    def reset(self) -> None:
+        """Forget the previous pose (a new trial)."""
+        self.last_pose = None
+
+    def __call__(self, frame: U8) -> FloatArray | None:
+        """The pose in ``frame``, or ``None``; remembers it as the next frame's prior."""
+        return self.track(frame).pose
+
+    def track(self, frame: U8, prior: ArrayLike | None = None) -> TrackResult:
+        """Track in ``frame`` (H, W, 3 uint8 RGB) near ``prior`` (default: the last pose)."""
+        if frame.shape[:2] != self.camera.shape:
+            raise ValueError(f"frame is {frame.shape[:2]}, the camera's {self.camera.shape}")
+        guess = self.last_pose if prior is None else np.asarray(prior, dtype=np.float64)
+        result = None
+        if guess is not None:
+            result = self._in_window(frame, guess, searched=False)
+        if result is None or result.pose is None:
+            found = self._search(frame)
+            result = found
+            if found.pose is not None:
+                refined = self._in_window(frame, found.pose, searched=True)
+                result = refined if refined.pose is not None else found
+        self.last_pose = result.pose
+        return result
+
+    def _heatmaps(self, image: U8) -> NDArray[np.float32]:
+        with torch.inference_mode():
+            out: NDArray[np.float32] = self.net(to_input(image))[0].numpy()
+        return out
+
+    def _in_window(self, frame: U8, pose: FloatArray, searched: bool) -> TrackResult:
+        h, w = frame.shape[:2]
+        size = min(self.window_px, h - h % self.stride, w - w % self.stride)
+        u, v = self.camera.to_pixel(pose[:2])
+        u0 = int(np.clip(round(u - (size - 1) / 2), 0, w - size))
+        v0 = int(np.clip(round(v - (size - 1) / 2), 0, h - size))
+        window = frame[v0 : v0 + size, u0 : u0 + size]
+        return self._result(self._heatmaps(window), np.array([u0, v0]), searched)
+
+    def _search(self, frame: U8) -> TrackResult:
+        h, w = frame.shape[:2]
+        ph, pw = -h % self.stride, -w % self.stride
+        image = frame
+        if ph or pw:
+            image = np.asarray(cv2.copyMakeBorder(frame, 0, ph, 0, pw, cv2.BORDER_REPLICATE))
+        return self._result(self._heatmaps(image), np.zeros(2), True)
+
+    def _result(
+        self, heatmaps: NDArray[np.float32], origin: FloatArray, searched: bool
+    ) -> TrackResult:
+        length_px = self.robot.length * self.camera.scale
+        pixels, conf = select_keypoints(peak_candidates(heatmaps), length_px)
+        points = np.array(
+            [refine_peak(hm, u, v) for hm, (u, v) in zip(heatmaps, pixels, strict=True)]
+        )
+        points += origin
+        c = float(conf.min())
+        pose = None
+        if c >= self.min_confidence:
+            fit = pose_from_keypoints(self.camera.to_world(points), self.robot.length, conf)
+            if abs(fit.span / self.robot.length - 1) <= 0.25:
+                pose = fit.pose
+        return TrackResult(pose, c, points, searched)

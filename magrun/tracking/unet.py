@@ -1,0 +1,184 @@
+"""The keypoint UNet: an RGB crop in, one heat map per fiducial out (torch).
+
+A small UNet (Ronneberger et al. 2015; the paper adapts the one of Pryor et al. 2021): four
+levels of two 3×3 convolutions with batch norm and ReLU, max-pool down, nearest-neighbour
+upsampling and skip concatenation up, and a 1×1 head with one channel per fiducial
+(:data:`magrun.tracking.keypoints.NAMES`). It is fully convolutional: it runs on the 96 px
+crops it was trained on and on whole frames (sides multiples of 8). Targets are Gaussians of
+σ = :data:`HEATMAP_SIGMA` px with peak 1; :func:`decode` reads each map's peak with a
+sub-pixel Gaussian fit and reports the peak height as the point's confidence.
+
+Weights are stored as ``.npz`` (one array per parameter plus a JSON ``meta`` entry), not as
+a pickle, so loading them runs no code.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from torch import nn
+
+FloatArray = NDArray[np.float64]
+
+HEATMAP_SIGMA = 1.5  # px
+N_KEYPOINTS = 3
+#: input normalisation: uint8 RGB → roughly zero-mean, unit-range floats
+MEAN, SCALE = 128.0, 1 / 64.0
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, padding=1, bias=False),
+        nn.BatchNorm2d(c_out),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(c_out, c_out, 3, padding=1, bias=False),
+        nn.BatchNorm2d(c_out),
+        nn.ReLU(inplace=True),
+    )
+
+
+class KeypointUNet(nn.Module):
+    """UNet with ``widths`` channels per level; input (B, 3, H, W), output (B, K, H, W)."""
+
+    def __init__(self, widths: tuple[int, ...] = (8, 16, 32, 64), n_keypoints: int = 3):
+        super().__init__()
+        self.widths = tuple(widths)
+        self.encoders = nn.ModuleList()
+        c = 3
+        for w in widths:
+            self.encoders.append(_block(c, w))
+            c = w
+        self.decoders = nn.ModuleList()
+        for w in reversed(widths[:-1]):
+            self.decoders.append(_block(c + w, w))
+            c = w
+        self.head = nn.Conv2d(c, n_keypoints, 1)
+
+    @property
+    def stride(self) -> int:
+        """Input sides must be multiples of this."""
+        return 2 ** (len(self.widths) - 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for level, enc in enumerate(self.encoders):
+            if level:
+                x = nn.functional.max_pool2d(x, 2)
+            x = enc(x)
+            skips.append(x)
+        for dec, skip in zip(self.decoders, reversed(skips[:-1]), strict=True):
+            x = nn.functional.interpolate(x, scale_factor=2.0, mode="nearest")
+            x = dec(torch.cat([x, skip], dim=1))
+        out: torch.Tensor = self.head(x)
+        return out
+
+
+def to_input(images: NDArray[np.uint8]) -> torch.Tensor:
+    """uint8 RGB images (B, H, W, 3) or one (H, W, 3) → normalised float tensor (B, 3, H, W)."""
+    a = images[None] if images.ndim == 3 else images
+    t = torch.from_numpy(np.ascontiguousarray(a)).permute(0, 3, 1, 2).float()
+    return ((t - MEAN) * SCALE).contiguous(memory_format=torch.channels_last)
+
+
+def gaussian_heatmaps(points: FloatArray, shape: tuple[int, int]) -> NDArray[np.float32]:
+    """Target maps, shape (K, H, W), peak 1 at each point (u, v) in px; NaN points give 0."""
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float32)
+    out = np.zeros((len(points), h, w), dtype=np.float32)
+    for k, (u, v) in enumerate(points):
+        if np.isfinite(u) and np.isfinite(v):
+            out[k] = np.exp(-((uu - u) ** 2 + (vv - v) ** 2) / (2 * HEATMAP_SIGMA**2))
+    return out
+
+
+def refine_peak(heatmap: NDArray[np.float32], u: int, v: int) -> tuple[float, float]:
+    """Sub-pixel position of the peak at pixel (u, v) of one map.
+
+    A Gaussian (log-parabola) through the peak and its two neighbours along each axis, exact
+    for a sampled Gaussian peak; at the border the pixel position is kept.
+    """
+    h, w = heatmap.shape
+    out = [float(u), float(v)]
+    for axis, (coord, size) in enumerate(((u, w), (v, h))):
+        if 0 < coord < size - 1:
+            if axis == 0:
+                a, b, c = heatmap[v, u - 1], heatmap[v, u], heatmap[v, u + 1]
+            else:
+                a, b, c = heatmap[v - 1, u], heatmap[v, u], heatmap[v + 1, u]
+            la, lb, lc = np.log(np.maximum([a, b, c], 1e-4))
+            den = la - 2 * lb + lc
+            if den < 0:
+                out[axis] += float(np.clip(0.5 * (la - lc) / den, -0.5, 0.5))
+    return out[0], out[1]
+
+
+def decode(heatmaps: NDArray[np.float32]) -> tuple[FloatArray, FloatArray]:
+    """The highest peak of each map.
+
+    Parameters
+    ----------
+    heatmaps : ndarray, shape (K, H, W)
+
+    Returns
+    -------
+    points : ndarray, shape (K, 2)
+        ``(u, v)`` in px: the arg-max refined by :func:`refine_peak`.
+    confidence : ndarray, shape (K,)
+        Peak heights (≈ 1 for a clear point, ≈ 0 where the model sees none).
+    """
+    k, _, w = heatmaps.shape
+    flat = heatmaps.reshape(k, -1)
+    idx = np.argmax(flat, axis=1)
+    conf = flat[np.arange(k), idx].astype(np.float64)
+    v, u = np.divmod(idx, w)
+    points = np.array([refine_peak(heatmaps[i], int(u[i]), int(v[i])) for i in range(k)])
+    return points, conf
+
+
+def peak_candidates(
+    heatmaps: NDArray[np.float32], max_peaks: int = 3, min_height: float = 0.2
+) -> list[tuple[NDArray[np.intp], FloatArray]]:
+    """Up to ``max_peaks`` local maxima (5 × 5 neighbourhood) of each map, highest first.
+
+    Returns, per map, ``(pixels (n, 2) integer (u, v), heights (n,))``; a map with no peak
+    above ``min_height`` gives its highest pixel alone. Refine the ones you keep with
+    :func:`refine_peak`.
+    """
+    out = []
+    for hm in heatmaps:
+        local = cv2.dilate(hm, np.ones((5, 5), np.uint8))
+        vs, us = np.nonzero((hm >= local) & (hm >= min_height))
+        if vs.size == 0:
+            v, u = np.unravel_index(int(np.argmax(hm)), hm.shape)
+            vs, us = np.array([v]), np.array([u])
+        heights = hm[vs, us].astype(np.float64)
+        order = np.argsort(-heights)[:max_peaks]
+        out.append((np.column_stack([us[order], vs[order]]), heights[order]))
+    return out
+
+
+def save_weights(model: KeypointUNet, path: str | Path, meta: dict[str, Any]) -> None:
+    """Write ``model``'s state and ``meta`` (JSON-able) to ``path`` (.npz)."""
+    arrays = {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
+    info = {"widths": list(model.widths), **meta}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, meta=np.array(json.dumps(info)), **arrays)
+    tmp.replace(path)
+
+
+def load_weights(path: str | Path) -> tuple[KeypointUNet, dict[str, Any]]:
+    """A model (eval mode) and its metadata from a file written by :func:`save_weights`."""
+    with np.load(path, allow_pickle=False) as data:
+        meta = json.loads(str(data["meta"]))
+        model = KeypointUNet(tuple(meta["widths"]))
+        state = {k: torch.from_numpy(data[k].copy()) for k in data.files if k != "meta"}
+    model.load_state_dict(state)
+    return model.eval(), meta

@@ -1,0 +1,422 @@
+"""Camera, renderer, keypoint geometry, UNet decoding, shipped weights, and the tracker."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose
+from scipy.optimize import least_squares
+
+from magrun.loop import run_trial
+from magrun.rigs.sim import SimRig
+from magrun.robot import RobotParams, load_robot, load_robots, wrap_angle
+from magrun.scene import Walls, s_trajectory
+from magrun.tracking.camera import Camera, CameraConfig
+from magrun.tracking.dataset import (
+    CROP,
+    crop_sample,
+    load_annotations,
+    real_samples,
+    synthetic_sample,
+)
+from magrun.tracking.fluoroscopy import FluoroscopyMimic
+from magrun.tracking.keypoints import axial_offsets, fiducials, pose_from_keypoints
+from magrun.tracking.render import PINK, YELLOW, Renderer, _Canvas
+from magrun.tracking.tracker import (
+    Tracker,
+    default_weights_path,
+    fuse_batch_norm,
+    select_keypoints,
+)
+from magrun.tracking.train import TrainConfig, make_batch, train
+from magrun.tracking.unet import (
+    HEATMAP_SIGMA,
+    KeypointUNet,
+    decode,
+    gaussian_heatmaps,
+    load_weights,
+    peak_candidates,
+    save_weights,
+    to_input,
+)
+
+CLEAN = CameraConfig(blur_px=0.0, noise=0.0, lighting=0.0)
+
+
+@pytest.fixture(scope="module")
+def robots() -> dict[str, RobotParams]:
+    return load_robots()
+
+
+@pytest.fixture(scope="module")
+def shipped() -> KeypointUNet:
+    model, _ = load_weights(default_weights_path())
+    return model
+
+
+# -- camera -------------------------------------------------------------------------------------
+
+
+@given(
+    x=st.floats(-0.06, 0.06),
+    y=st.floats(-0.06, 0.06),
+    u0=st.integers(0, 160),
+    v0=st.integers(0, 160),
+)
+def test_camera_round_trip_and_crops_agree(x: float, y: float, u0: int, v0: int) -> None:
+    cam = Camera()
+    uv = cam.to_pixel([x, y])
+    assert_allclose(cam.to_world(uv), [x, y], atol=1e-15)
+    crop = cam.crop((u0, v0), (CROP, CROP))
+    # a world point lands in the crop at its frame pixel minus the crop's origin
+    assert_allclose(crop.to_pixel([x, y]), uv - [u0, v0], atol=1e-9)
+
+
+def test_camera_orientation_x_right_y_up() -> None:
+    cam = Camera()
+    u0, v0 = cam.to_pixel([0.0, 0.0])
+    u1, v1 = cam.to_pixel([0.001, 0.002])
+    assert (u0, v0) == (127.5, 127.5)
+    assert u1 - u0 == pytest.approx(2.5)
+    assert v1 - v0 == pytest.approx(-5.0)
+
+
+# -- keypoint geometry --------------------------------------------------------------------------
+
+
+@given(
+    x=st.floats(-0.05, 0.05),
+    y=st.floats(-0.05, 0.05),
+    th=st.floats(-math.pi, math.pi),
+    length=st.floats(0.002, 0.03),
+)
+def test_pose_from_keypoints_is_exact_on_exact_points(
+    x: float, y: float, th: float, length: float
+) -> None:
+    fit = pose_from_keypoints(fiducials([x, y, th], length), length)
+    assert_allclose(fit.pose[:2], [x, y], atol=1e-15)
+    assert abs(wrap_angle(fit.pose[2] - th)) < 1e-12
+    assert fit.residual < 1e-15
+    assert fit.span == pytest.approx(length, rel=1e-12)
+
+
+@settings(max_examples=30)
+@given(seed=st.integers(0, 2**31))
+def test_pose_from_keypoints_is_the_weighted_least_squares_pose(seed: int) -> None:
+    """Noisy, weighted points: the closed form equals a numerical least-squares fit."""
+    rng = np.random.default_rng(seed)
+    length = 0.016
+    pose = np.array([*rng.uniform(-0.04, 0.04, 2), rng.uniform(-math.pi, math.pi)])
+    pts = fiducials(pose, length) + rng.normal(0, 3e-4, (3, 2))
+    w = rng.uniform(0.2, 1.0, 3)
+    s = axial_offsets(length)
+
+    def residuals(q: np.ndarray) -> np.ndarray:
+        u = np.array([math.cos(q[2]), math.sin(q[2])])
+        return (np.sqrt(w)[:, None] * (q[:2] + s[:, None] * u - pts)).ravel()
+
+    ref = least_squares(residuals, pose, xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+    got = pose_from_keypoints(pts, length, w).pose
+    assert_allclose(got[:2], ref[:2], atol=1e-10)
+    assert abs(wrap_angle(got[2] - ref[2])) < 1e-8
+
+
+def test_pose_from_keypoints_drops_zero_weights_and_rejects_degenerate_input() -> None:
+    pose = np.array([0.01, 0.02, -2.0])
+    pts = fiducials(pose, 0.01)
+    pts_bad_centre = pts.copy()
+    pts_bad_centre[1] += 0.003
+    fit = pose_from_keypoints(pts_bad_centre, 0.01, [1.0, 0.0, 1.0])
+    assert_allclose(fit.pose, pose, atol=1e-12)
+    with pytest.raises(ValueError, match="two points"):
+        pose_from_keypoints(pts, 0.01, [1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="axis"):
+        pose_from_keypoints(np.zeros((3, 2)), 0.01)
+    with pytest.raises(ValueError, match="shape"):
+        pose_from_keypoints(np.zeros((2, 2)), 0.01)
+
+
+# -- renderer -----------------------------------------------------------------------------------
+
+
+def _colour_centroid(image: np.ndarray, colour: tuple[float, float, float]) -> np.ndarray:
+    """Centroid (u, v) of the pixels weighted by how close they are to ``colour``."""
+    img = image.astype(np.float64) / 255
+    d = np.linalg.norm(img - np.asarray(colour), axis=2)
+    w = np.clip(1 - d / 0.25, 0, None)
+    vv, uu = np.mgrid[0 : image.shape[0], 0 : image.shape[1]]
+    return np.array([np.sum(w * uu), np.sum(w * vv)]) / np.sum(w)
+
+
+@settings(max_examples=25)
+@given(seed=st.integers(0, 2**31))
+def test_shapes_are_drawn_by_their_area_coverage(seed: int) -> None:
+    """A pixel gets the fraction of it the shape covers.
+
+    Total area within 0.1 px times the perimeter (the outline placed to 0.1 px), centroid
+    within 0.1 px of the exact (shoelace / stadium) values; a half-pixel convention slip, or
+    OpenCV's ½ px dilation left in, fails both.
+    """
+    rng = np.random.default_rng(seed)
+    c = rng.uniform(20, 44, 2)
+    # a jittered square inscribed in a circle (convex, no slivers)
+    angles = np.arange(4) * np.pi / 2 + rng.uniform(-0.5, 0.5, 4)
+    quad = c + rng.uniform(6, 12) * np.column_stack([np.cos(angles), np.sin(angles)])
+    x, y = quad.T
+    cross = x * np.roll(y, -1) - np.roll(x, -1) * y
+    area = cross.sum() / 2
+    centroid = [np.sum((x + np.roll(x, -1)) * cross), np.sum((y + np.roll(y, -1)) * cross)]
+    canvas = _Canvas(np.zeros((64, 64, 3), np.float32))
+    canvas.polygon(quad, (1.0, 1.0, 1.0), 1.0)
+    cover = canvas.image[..., 0].astype(np.float64)
+    vv, uu = np.mgrid[0:64, 0:64]
+    perimeter = np.hypot(*(np.roll(quad, -1, axis=0) - quad).T).sum()
+    assert abs(cover.sum() - abs(area)) < 0.1 * perimeter
+    assert_allclose([np.sum(cover * uu), np.sum(cover * vv)] / cover.sum(),
+                    np.array(centroid) / (6 * area), atol=0.1)  # fmt: skip
+
+    half = np.array([5.3, 2.1])
+    a, b, r = c - half, c + half, rng.uniform(1.5, 4.0)
+    canvas = _Canvas(np.zeros((64, 64, 3), np.float32))
+    canvas.capsule(a, b, r, (1.0, 1.0, 1.0), 1.0)
+    cover = canvas.image[..., 0].astype(np.float64)
+    length = np.hypot(*(b - a))
+    assert abs(cover.sum() - (np.pi * r**2 + 2 * r * length)) < 0.1 * (2 * np.pi * r + 2 * length)
+    assert_allclose([np.sum(cover * uu), np.sum(cover * vv)] / cover.sum(), c, atol=0.1)
+
+
+@pytest.mark.parametrize("theta", [0.0, 0.7, 2.0, -2.6])
+def test_rendered_magnet_robot_matches_its_labels(robots, theta: float) -> None:
+    """Pink front half around c + L/4·u, yellow rear half around c − L/4·u.
+
+    Checks the renderer's conventions (image y down, heading toward the pink end) against
+    the keypoint labels: a sign or axis mistake would be off by ≥ 10 px; 0.3 px allows for
+    the colour-distance weighting of mixed edge pixels.
+    """
+    robot = robots["magnet"]
+    cam = Camera(CLEAN)
+    pose = np.array([0.0123, -0.0071, theta])
+    image = Renderer(cam, robot).render(pose)
+    u = np.array([math.cos(theta), math.sin(theta)])
+    for colour, sign in ((PINK, 1), (YELLOW, -1)):
+        expected = cam.to_pixel(pose[:2] + sign * robot.length / 4 * u)
+        assert_allclose(_colour_centroid(image, colour), expected, atol=0.3)
+
+
+def test_renderer_is_seeded_and_noisy_frames_differ() -> None:
+    robot = load_robot("drug_delivery")
+    a = Renderer(Camera(), robot, seed=3)
+    b = Renderer(Camera(), robot, seed=3)
+    pose = [0.0, 0.0, 1.0]
+    f1, f2 = a.render(pose), a.render(pose)
+    assert np.array_equal(f1, b.render(pose))
+    assert not np.array_equal(f1, f2)  # fresh sensor noise per frame
+    assert f1.dtype == np.uint8
+    assert f1.shape == (256, 256, 3)
+
+
+def test_robot_out_of_view_renders_an_empty_frame(robots) -> None:
+    cam = Camera(CLEAN)
+    empty = Renderer(cam, robots["magnet"]).render([1.0, 1.0, 0.0])
+    assert np.ptp(empty.reshape(-1, 3), axis=0).max() == 0
+
+
+# -- UNet pieces --------------------------------------------------------------------------------
+
+
+@given(u=st.floats(3.0, 60.0), v=st.floats(3.0, 60.0))
+def test_decode_recovers_subpixel_gaussian_peaks(u: float, v: float) -> None:
+    """The log-parabola fit is exact for a sampled Gaussian: 1e-6 px."""
+    hm = gaussian_heatmaps(np.array([[u, v], [v, u], [30.2, 10.7]]), (64, 64))
+    pts, conf = decode(hm)
+    assert_allclose(pts, [[u, v], [v, u], [30.2, 10.7]], atol=1e-4)
+    expected_peak = np.exp(-((np.round(pts) - pts) ** 2).sum(axis=1) / (2 * HEATMAP_SIGMA**2))
+    assert_allclose(conf, expected_peak, atol=1e-4)
+
+
+def test_consistent_keypoints_beat_stronger_inconsistent_peaks() -> None:
+    """The failure the small UNet shows: the tail map peaks higher at the centre than at the
+    tail. Peak candidates plus the geometric selection still pick the true tail."""
+    tail, centre, head = np.array([[20.0, 30.0], [40.0, 30.0], [60.0, 30.0]])
+    maps = np.stack([
+        0.8 * gaussian_heatmaps(tail[None], (64, 80))[0]
+        + 0.95 * gaussian_heatmaps(centre[None], (64, 80))[0],
+        0.8 * gaussian_heatmaps(centre[None], (64, 80))[0]
+        + 0.6 * gaussian_heatmaps(tail[None], (64, 80))[0],
+        0.9 * gaussian_heatmaps(head[None], (64, 80))[0],
+    ])  # fmt: skip
+    assert_allclose(decode(maps)[0][0], centre, atol=1e-3)  # the highest peak alone is wrong
+    candidates = peak_candidates(maps)
+    assert [len(h) for _, h in candidates] == [2, 2, 1]
+    pixels, heights = select_keypoints(candidates, length_px=40.0)
+    assert_allclose(pixels, [tail, centre, head])
+    assert_allclose(heights, [0.8, 0.8, 0.9], atol=1e-3)
+
+
+def test_heatmaps_of_missing_points_are_zero() -> None:
+    hm = gaussian_heatmaps(np.full((3, 2), np.nan), (8, 8))
+    assert hm.shape == (3, 8, 8)
+    assert not hm.any()
+
+
+def test_batch_norm_fusion_preserves_the_output(shipped: KeypointUNet) -> None:
+    x = to_input(np.random.default_rng(0).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8))
+    with torch.inference_mode():
+        assert_allclose(fuse_batch_norm(shipped)(x).numpy(), shipped(x).numpy(), atol=1e-4)
+
+
+def test_weights_round_trip(tmp_path) -> None:
+    torch.manual_seed(0)
+    model = KeypointUNet((4, 8)).eval()
+    path = tmp_path / "w.npz"
+    save_weights(model, path, {"note": "test"})
+    loaded, meta = load_weights(path)
+    x = torch.randn(1, 3, 16, 16)
+    with torch.inference_mode():
+        assert torch.equal(model(x), loaded(x))
+    assert meta["note"] == "test"
+    assert meta["widths"] == [4, 8]
+
+
+def test_training_reduces_the_loss(robots) -> None:
+    """A few steps from random weights lower the heat-map loss on a fixed batch."""
+    robots_list = list(robots.values())
+    rng = np.random.default_rng(1)
+    x, y = make_batch([synthetic_sample(rng, robots_list) for _ in range(8)])
+    torch.manual_seed(0)
+    model = KeypointUNet((4, 8, 16, 32))
+
+    def loss(m: KeypointUNet) -> float:
+        m.eval()
+        with torch.inference_mode():
+            return float(torch.mean((1 + 10 * y) * (m(x) - y) ** 2))
+
+    before = loss(model)
+    cfg = TrainConfig(steps=15, batch=8, lr=1e-2, widths=(4, 8, 16, 32))
+    after = loss(train(robots_list, cfg, model=model))
+    assert after < 0.7 * before
+
+
+# -- shipped weights and the tracker ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["magnet", "drug_delivery"])
+def test_shipped_weights_track_a_rendered_frame(shipped, robots, name: str) -> None:
+    """Both robots, with and without a previous pose: within 0.3 mm and 2°."""
+    robot = robots[name]
+    cam = Camera()
+    tracker = Tracker(shipped, cam, robot)
+    for seed, pose in enumerate([[0.012, -0.02, 0.4], [-0.03, 0.025, -2.5], [0.0, 0.0, 3.0]]):
+        frame = Renderer(cam, robot, Walls.box(0.05), seed=seed).render(pose)
+        for prior in (None, np.array(pose) + np.array([0.001, -0.001, 0.0])):
+            tracker.reset()
+            result = tracker.track(frame, prior)
+            assert result.pose is not None
+            assert result.searched == (prior is None)
+            assert np.hypot(*(result.pose[:2] - pose[:2])) < 0.3e-3
+            assert abs(wrap_angle(result.pose[2] - pose[2])) < math.radians(2)
+            assert result.confidence > 0.5
+
+
+def test_tracker_reports_no_pose_on_an_empty_frame(shipped, robots) -> None:
+    cam = Camera()
+    frame = Renderer(cam, robots["magnet"], Walls.box(0.05)).render([1.0, 1.0, 0.0])
+    tracker = Tracker(shipped, cam, robots["magnet"])
+    result = tracker.track(frame)
+    assert result.pose is None
+    assert result.confidence < tracker.min_confidence
+    assert tracker.last_pose is None
+    with pytest.raises(ValueError, match="frame is"):
+        tracker.track(frame[:100])
+
+
+def test_closed_loop_with_camera_tracking_and_fluoroscopy(shipped, magnet_robot) -> None:
+    """Rendered frames → UNet → 7.5 Hz mimic → controller: tracked ≈ actual, 7.5 Hz delivered."""
+    from magrun.control.methods import make_controller
+
+    rig = SimRig.default(seed=2, camera=CameraConfig())
+    assert rig.camera is not None
+    tracker = Tracker(shipped, rig.camera, magnet_robot)
+    mimic = FluoroscopyMimic(7.5, 0.0, seed=0)
+    log = run_trial(
+        make_controller("baseline2"), rig, s_trajectory(), mimic, duration=2.0, tracker=tracker
+    )
+    err = np.hypot(*(log.tracked[:, :2] - log.actual[:, :2]).T)
+    assert np.all(np.isfinite(err))
+    assert err.max() < 0.3e-3
+    delivered = np.isfinite(log.measured[:, 0])
+    assert delivered.sum() == 16  # t = 0 … 2 s at 7.5 Hz: due at k/7.5 for k = 0 … 15
+    assert_allclose(log.measured[delivered], log.tracked[delivered])
+
+
+def test_tracker_without_frames_is_an_error(shipped, magnet_robot) -> None:
+    from magrun.control.methods import make_controller
+
+    tracker = Tracker(shipped, Camera(), magnet_robot)
+    with pytest.raises(ValueError, match="camera"):
+        run_trial(make_controller("baseline2"), SimRig.default(), s_trajectory(), duration=0.1,
+                  tracker=tracker)  # fmt: skip
+
+
+# -- real images --------------------------------------------------------------------------------
+
+
+def _write_annotations(path, rows) -> None:
+    lines = ["image,tail_u,tail_v,centre_u,centre_v,head_u,head_v,comment"]
+    lines += [",".join(str(v) for v in r) for r in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_real_frames_from_a_folder_are_rescaled_with_their_labels(tmp_path, robots) -> None:
+    """A frame at 5 px/mm, annotated, loads at 2.5 px/mm with labels on the same features."""
+    robot = robots["magnet"]
+    big = Camera(replace(CLEAN, width_px=400, height_px=300, px_per_mm=5.0))
+    pose = [0.004, -0.003, 0.9]
+    rgb = Renderer(big, robot).render(pose)
+    cv2.imwrite(str(tmp_path / "f0.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    pts = big.to_pixel(fiducials(pose, robot.length))
+    _write_annotations(tmp_path / "labels.csv", [["f0.png", *pts.ravel(), "ok"]])
+    [(image, labels)] = real_samples(tmp_path, tmp_path / "labels.csv", 5.0, 2.5)
+    assert image.shape == (150, 200, 3)
+    small = Camera(replace(CLEAN, width_px=200, height_px=150, px_per_mm=2.5))
+    assert_allclose(labels, small.to_pixel(fiducials(pose, robot.length)), atol=1e-9)
+    crop = crop_sample(np.random.default_rng(0), image, labels, CROP, 10.0)
+    assert crop.image.shape == (CROP, CROP, 3)
+    # the crop's labels point at the same pixels as the frame's
+    shift = np.round(labels[0] - crop.keypoints[0])
+    assert_allclose(crop.keypoints + shift, labels)
+
+
+def test_real_frames_from_a_video(tmp_path, robots) -> None:
+    cam = Camera(CLEAN)
+    renderer = Renderer(cam, robots["magnet"])
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (256, 256))
+    assert writer.isOpened()
+    for k in range(3):
+        writer.write(cv2.cvtColor(renderer.render([0.01 * k, 0.0, 0.0]), cv2.COLOR_RGB2BGR))
+    writer.release()
+    _write_annotations(tmp_path / "l.csv", [[2, 1, 2, 3, 4, 5, 6, ""]])
+    [(image, labels)] = real_samples(path, tmp_path / "l.csv", 2.5, 2.5)
+    assert image.shape == (256, 256, 3)
+    assert_allclose(labels, [[1, 2], [3, 4], [5, 6]])
+    # it is frame 2: the pink half sits at x = 20 mm + L/4 (1 px allows for MJPG)
+    expected = cam.to_pixel([0.02 + robots["magnet"].length / 4, 0.0])
+    assert_allclose(_colour_centroid(image, PINK), expected, atol=1.0)
+
+
+def test_bad_annotations_name_file_line_and_column(tmp_path) -> None:
+    p = tmp_path / "bad.csv"
+    _write_annotations(p, [["a.png", 1, 2, 3, 4, 5, 6, ""], ["b.png", 1, "x", 3, 4, 5, 6, ""]])
+    with pytest.raises(ValueError, match=r"bad\.csv:3: column 'tail_v'"):
+        load_annotations(p)
+    p.write_text("image,tail_u\n")
+    with pytest.raises(ValueError, match=r"bad\.csv:1: missing column"):
+        load_annotations(p)
