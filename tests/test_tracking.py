@@ -325,6 +325,20 @@ def test_shipped_weights_track_a_rendered_frame(shipped, robots, name: str) -> N
             assert result.confidence > 0.5
 
 
+def test_frames_at_another_scale_are_tracked(shipped, robots) -> None:
+    """A 4.1 px/mm, 400 × 330 px camera (a lab's): resized to the model's scale internally,
+    pose within 0.3 mm and 2°, keypoints reported in the frame's own pixels (within 1 px)."""
+    robot = robots["magnet"]
+    cam = Camera(replace(CameraConfig(), width_px=400, height_px=330, px_per_mm=4.1))
+    pose = np.array([0.008, -0.011, 2.2])
+    frame = Renderer(cam, robot, seed=4).render(pose)
+    result = Tracker(shipped, cam, robot).track(frame)
+    assert result.pose is not None
+    assert np.hypot(*(result.pose[:2] - pose[:2])) < 0.3e-3
+    assert abs(wrap_angle(result.pose[2] - pose[2])) < math.radians(2)
+    assert_allclose(result.keypoints, cam.to_pixel(fiducials(pose, robot.length)), atol=1.0)
+
+
 def test_tracker_reports_no_pose_on_an_empty_frame(shipped, robots) -> None:
     cam = Camera()
     frame = Renderer(cam, robots["magnet"], Walls.box(0.05)).render([1.0, 1.0, 0.0])

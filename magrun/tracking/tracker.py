@@ -21,7 +21,7 @@ tail-to-head span is not within 25 % of the robot's length.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
 
@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from torch import nn
 
 from magrun.robot import RobotParams
-from magrun.tracking.camera import Camera
+from magrun.tracking.camera import DEFAULT_CAMERA, Camera
 from magrun.tracking.keypoints import pose_from_keypoints
 from magrun.tracking.unet import (
     KeypointUNet,
@@ -146,6 +146,9 @@ class Tracker:
         Side of the window tracked around the previous pose (a multiple of 8), px. It must
         hold the robot (the magnet robot is 40 px long at 2.5 px/mm) plus its motion
         between frames.
+    model_px_per_mm : float
+        The scale the model was trained at. Frames at another scale (a real camera) are
+        resized to it before tracking; results are reported in the frame's own pixels.
     """
 
     def __init__(
@@ -155,10 +158,24 @@ class Tracker:
         robot: RobotParams,
         min_confidence: float = 0.3,
         window_px: int = 80,
+        model_px_per_mm: float = DEFAULT_CAMERA.px_per_mm,
     ) -> None:
         self.net = fuse_batch_norm(model)
         self.stride = model.stride
         self.camera = camera
+        cfg = camera.config
+        # cv2.resize maps pixel centres by (u + ½)·W'/W − ½: the working camera's scale is
+        # W'/W times the frame's, its principal point the resized frame's centre
+        self._size = (
+            max(round(cfg.width_px * model_px_per_mm / cfg.px_per_mm), 16),
+            max(round(cfg.height_px * model_px_per_mm / cfg.px_per_mm), 16),
+        )
+        self._factor = self._size[0] / cfg.width_px
+        self._work = Camera(
+            replace(cfg, width_px=self._size[0], height_px=self._size[1],
+                    px_per_mm=cfg.px_per_mm * self._factor),
+            camera.center,
+        )  # fmt: skip
         self.robot = robot
         self.min_confidence = min_confidence
         if window_px % self.stride or window_px < 4 * self.stride:
@@ -171,8 +188,8 @@ class Tracker:
         cls, camera: Camera, robot: RobotParams, weights: str | Path | None = None
     ) -> Tracker:
         """A tracker with the shipped weights (or those in ``weights``)."""
-        model, _ = load_weights(weights if weights is not None else default_weights_path())
-        return cls(model, camera, robot)
+        model, meta = load_weights(weights if weights is not None else default_weights_path())
+        return cls(model, camera, robot, model_px_per_mm=meta.get("px_per_mm", 2.5))
 
     def reset(self) -> None:
         """Forget the previous pose (a new trial)."""
@@ -186,6 +203,8 @@ class Tracker:
         """Track in ``frame`` (H, W, 3 uint8 RGB) near ``prior`` (default: the last pose)."""
         if frame.shape[:2] != self.camera.shape:
             raise ValueError(f"frame is {frame.shape[:2]}, the camera's {self.camera.shape}")
+        if self._size != (frame.shape[1], frame.shape[0]):
+            frame = np.asarray(cv2.resize(frame, self._size, interpolation=cv2.INTER_AREA))
         guess = self.last_pose if prior is None else np.asarray(prior, dtype=np.float64)
         result = None
         if guess is not None:
@@ -197,6 +216,8 @@ class Tracker:
                 refined = self._in_window(frame, found.pose, searched=True)
                 result = refined if refined.pose is not None else found
         self.last_pose = result.pose
+        if self._factor != 1.0:  # report keypoints in the caller's frame pixels
+            result = replace(result, keypoints=(result.keypoints + 0.5) / self._factor - 0.5)
         return result
 
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
@@ -207,7 +228,7 @@ class Tracker:
     def _in_window(self, frame: U8, pose: FloatArray, searched: bool) -> TrackResult:
         h, w = frame.shape[:2]
         size = min(self.window_px, h - h % self.stride, w - w % self.stride)
-        u, v = self.camera.to_pixel(pose[:2])
+        u, v = self._work.to_pixel(pose[:2])
         u0 = int(np.clip(round(u - (size - 1) / 2), 0, w - size))
         v0 = int(np.clip(round(v - (size - 1) / 2), 0, h - size))
         window = frame[v0 : v0 + size, u0 : u0 + size]
@@ -224,7 +245,7 @@ class Tracker:
     def _result(
         self, heatmaps: NDArray[np.float32], origin: FloatArray, searched: bool
     ) -> TrackResult:
-        length_px = self.robot.length * self.camera.scale
+        length_px = self.robot.length * self._work.scale
         pixels, conf = select_keypoints(peak_candidates(heatmaps), length_px)
         points = np.array(
             [refine_peak(hm, u, v) for hm, (u, v) in zip(heatmaps, pixels, strict=True)]
@@ -233,7 +254,7 @@ class Tracker:
         c = float(conf.min())
         pose = None
         if c >= self.min_confidence:
-            fit = pose_from_keypoints(self.camera.to_world(points), self.robot.length, conf)
+            fit = pose_from_keypoints(self._work.to_world(points), self.robot.length, conf)
             if abs(fit.span / self.robot.length - 1) <= 0.25:
                 pose = fit.pose
         return TrackResult(pose, c, points, searched)

@@ -13,7 +13,6 @@ one-cycle learning-rate schedule.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -94,9 +93,3 @@ def train(
         if progress is not None:
             progress(step + 1, config.steps, smoothed)
     return net.eval()
-
-
-def timed_train(robots: Sequence[RobotParams], config: TrainConfig) -> tuple[KeypointUNet, float]:
-    t0 = time.perf_counter()
-    net = train(robots, config)
-    return net, time.perf_counter() - t0
