@@ -91,7 +91,10 @@ class KalmanPoseFilter(Estimator):
 
 
 class MeasurementOrPrediction(Estimator):
-    """Baselines 1, 3, 4: the measurement when one arrives, else the controller's prediction."""
+    """Baselines 1, 3, 4: the measurement when one arrives, else the controller's prediction.
+
+    A measured θ is moved by a multiple of 2π next to the previous estimate.
+    """
 
     use_prediction = True
 
@@ -100,7 +103,11 @@ class MeasurementOrPrediction(Estimator):
 
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
         if measurement is not None:
-            self._last = np.asarray(measurement, dtype=np.float64).copy()
+            z = np.asarray(measurement, dtype=np.float64).copy()
+            # trackers report θ in (−π, π]; keep the estimate continuous, as the NMPC's warm
+            # start and the reference are
+            z[2] = angle_near(z[2], float(self._last[2]))
+            self._last = z
         elif prediction is not None and self.use_prediction:
             self._last = np.asarray(prediction, dtype=np.float64).copy()
         return self._last.copy()

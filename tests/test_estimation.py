@@ -70,3 +70,14 @@ def test_baseline_estimators(cls: type) -> None:
     assert_allclose(est.update(z, p), z)
     expected_gap = p if cls is MeasurementOrPrediction else z
     assert_allclose(est.update(None, p), expected_gap)
+
+
+@pytest.mark.parametrize("cls", [MeasurementOrPrediction, HoldLastMeasurement])
+def test_baseline_estimates_stay_continuous_across_pi(cls: type) -> None:
+    """Tracked θ wraps at ±π; the estimate follows the heading continuously (θ + 2πk)."""
+    est = cls()
+    est.reset(np.array([0.0, 0.0, math.pi - 0.2]))
+    headings = math.pi - 0.2 + 0.1 * np.arange(1, 8)  # turning through π
+    for th in headings:
+        got = est.update(np.array([0.0, 0.0, math.atan2(math.sin(th), math.cos(th))]), None)
+        assert got[2] == pytest.approx(th, abs=1e-12)
