@@ -263,3 +263,39 @@ def test_tracker_verbs_reject_bad_input(
     assert result.exit_code == 2
     assert message in result.output
     assert "Traceback" not in result.output
+
+
+def test_tracker_run_on_an_image_folder(runner: CliRunner, tmp_path) -> None:
+    """Frames a lab's camera might give (4 px/mm, 320 × 240): poses in mm from the centre."""
+    import csv
+    from dataclasses import replace
+
+    import cv2
+
+    from magrun.robot import load_robot
+    from magrun.tracking.camera import DEFAULT_CAMERA, Camera
+    from magrun.tracking.render import Renderer
+
+    cam = Camera(replace(DEFAULT_CAMERA, width_px=320, height_px=240, px_per_mm=4.0))
+    renderer = Renderer(cam, load_robot("magnet"), seed=1)
+    poses = [(0.005, 0.002, 0.3), (0.006, 0.002, 0.35), (-0.01, -0.005, -2.0)]
+    for k, pose in enumerate(poses):
+        bgr = cv2.cvtColor(renderer.render(pose), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(tmp_path / f"frame{k:03d}.png"), bgr)
+    out = tmp_path / "poses.csv"
+    result = runner.invoke(
+        cli, ["tracker", "run", str(tmp_path), "--px-per-mm", "4", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    with out.open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["frame"] for r in rows] == ["frame000.png", "frame001.png", "frame002.png"]
+    for row, (x, y, th) in zip(rows, poses, strict=True):
+        assert abs(float(row["x_mm"]) - x * 1e3) < 0.3
+        assert abs(float(row["y_mm"]) - y * 1e3) < 0.3
+        assert abs(float(row["theta_deg"]) - np.degrees(th)) < 2.0
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result = runner.invoke(cli, ["tracker", "run", str(empty), "--px-per-mm", "4"])
+    assert result.exit_code == 2
+    assert "no images" in result.output

@@ -178,6 +178,36 @@ def read_frames(source: str | Path, names: Sequence[str]) -> Iterator[U8]:
         cap.release()
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def iter_frames(source: str | Path) -> Iterator[tuple[str, U8]]:
+    """Every frame of a folder of images (sorted by name) or of a video: (name, RGB) pairs.
+
+    A video's frames are named by their 0-based index, as in the annotation format.
+    """
+    source = Path(source)
+    if source.is_dir():
+        names = sorted(p.name for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not names:
+            raise ValueError(f"{source}: no images ({', '.join(IMAGE_SUFFIXES)})")
+        yield from zip(names, read_frames(source, names), strict=True)
+        return
+    cap = cv2.VideoCapture(str(source))
+    if not cap.isOpened():
+        raise ValueError(f"{source}: not an image folder or a readable video")
+    try:
+        index = 0
+        while True:
+            ok, bgr = cap.read()
+            if not ok:
+                break
+            yield str(index), np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+            index += 1
+    finally:
+        cap.release()
+
+
 def real_samples(
     source: str | Path, annotations: str | Path, px_per_mm: float, target_px_per_mm: float
 ) -> list[tuple[U8, FloatArray]]:
