@@ -312,6 +312,7 @@ def track(
     from magrun.loop import run_trial
     from magrun.rigs.sim import SimRig
     from magrun.scene import s_trajectory
+    from magrun.tracking.camera import CameraConfig
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
 
     unknown = [m for m in methods if m not in METHODS]
@@ -328,9 +329,7 @@ def track(
     for method in methods or METHODS:
         try:
             controller = make_controller(method, robot)
-            rig = SimRig.default(
-                robot=robot, seed=seed, camera=_camera_config() if camera else None
-            )
+            rig = SimRig.default(robot=robot, seed=seed, camera=CameraConfig() if camera else None)
         except KeyError as exc:
             raise InputError(str(exc).strip("'\"")) from exc
         tracker = _default_tracker(rig.camera, rig.nominal_robot) if rig.camera else None
@@ -388,12 +387,6 @@ def track(
         click.echo(json.dumps({**doc, "results": results}))
 
 
-def _camera_config() -> Any:
-    from magrun.tracking.camera import CameraConfig
-
-    return CameraConfig()
-
-
 def _default_tracker(camera: Any, robot: Any, weights: Path | None = None) -> Any:
     from magrun.tracking.tracker import Tracker
 
@@ -406,6 +399,15 @@ def _default_tracker(camera: Any, robot: Any, weights: Path | None = None) -> An
 @cli.group()
 def tracker() -> None:
     """The UNet keypoint tracker: train it, evaluate it."""
+
+
+def _weights_option(help_text: str) -> Any:
+    return click.option(
+        "--weights",
+        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        default=None,
+        help=help_text,
+    )
 
 
 @tracker.command("train")
@@ -509,12 +511,7 @@ def tracker_train(
 @click.argument("source", type=click.Path(exists=True, path_type=Path))
 @click.option("--px-per-mm", type=float, required=True, help="Scale of the frames, px per mm.")
 @click.option("--robot", default="magnet", show_default=True, help="Robot in robots.yaml.")
-@click.option(
-    "--weights",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="Weights [default: the shipped ones].",
-)
+@_weights_option("Weights [default: the shipped ones].")
 @click.option(
     "--out",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -579,12 +576,7 @@ def tracker_run(
 
 
 @tracker.command("eval")
-@click.option(
-    "--weights",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="Weights to evaluate [default: the shipped ones].",
-)
+@_weights_option("Weights to evaluate [default: the shipped ones].")
 @click.option("--frames", type=click.IntRange(min=10), default=1000, show_default=True)
 @click.option(
     "--search-frames",

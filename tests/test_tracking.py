@@ -39,10 +39,10 @@ from magrun.tracking.train import TrainConfig, make_batch, train
 from magrun.tracking.unet import (
     HEATMAP_SIGMA,
     KeypointUNet,
-    decode,
     gaussian_heatmaps,
     load_weights,
     peak_candidates,
+    refine_peak,
     save_weights,
     to_input,
 )
@@ -232,13 +232,16 @@ def test_robot_out_of_view_renders_an_empty_frame(robots) -> None:
 
 
 @given(u=st.floats(3.0, 60.0), v=st.floats(3.0, 60.0))
-def test_decode_recovers_subpixel_gaussian_peaks(u: float, v: float) -> None:
-    """The log-parabola fit is exact for a sampled Gaussian: 1e-6 px."""
-    hm = gaussian_heatmaps(np.array([[u, v], [v, u], [30.2, 10.7]]), (64, 64))
-    pts, conf = decode(hm)
-    assert_allclose(pts, [[u, v], [v, u], [30.2, 10.7]], atol=1e-4)
-    expected_peak = np.exp(-((np.round(pts) - pts) ** 2).sum(axis=1) / (2 * HEATMAP_SIGMA**2))
-    assert_allclose(conf, expected_peak, atol=1e-4)
+def test_peaks_are_found_and_refined_to_subpixel(u: float, v: float) -> None:
+    """One peak per map; the log-parabola fit is exact for a sampled Gaussian (1e-4 px with
+    float32 maps); the height is the Gaussian at the peak pixel."""
+    points = np.array([[u, v], [v, u], [30.2, 10.7]])
+    maps = gaussian_heatmaps(points, (64, 64))
+    for hm, (pixels, heights), p in zip(maps, peak_candidates(maps), points, strict=True):
+        assert len(heights) == 1
+        assert_allclose(refine_peak(hm, *pixels[0]), p, atol=1e-4)
+        expected = np.exp(-np.sum((pixels[0] - p) ** 2) / (2 * HEATMAP_SIGMA**2))
+        assert heights[0] == pytest.approx(expected, abs=1e-4)
 
 
 def test_consistent_keypoints_beat_stronger_inconsistent_peaks() -> None:
@@ -252,8 +255,8 @@ def test_consistent_keypoints_beat_stronger_inconsistent_peaks() -> None:
         + 0.6 * gaussian_heatmaps(tail[None], (64, 80))[0],
         0.9 * gaussian_heatmaps(head[None], (64, 80))[0],
     ])  # fmt: skip
-    assert_allclose(decode(maps)[0][0], centre, atol=1e-3)  # the highest peak alone is wrong
     candidates = peak_candidates(maps)
+    assert_allclose(candidates[0][0][0], centre)  # the tail map's highest peak alone is wrong
     assert [len(h) for _, h in candidates] == [2, 2, 1]
     pixels, heights = select_keypoints(candidates, length_px=40.0)
     assert_allclose(pixels, [tail, centre, head])

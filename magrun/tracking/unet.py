@@ -5,8 +5,9 @@ levels of two 3×3 convolutions with batch norm and ReLU, max-pool down, nearest
 upsampling and skip concatenation up, and a 1×1 head with one channel per fiducial
 (:data:`magrun.tracking.keypoints.NAMES`). It is fully convolutional: it runs on the 96 px
 crops it was trained on and on whole frames (sides multiples of 8). Targets are Gaussians of
-σ = :data:`HEATMAP_SIGMA` px with peak 1; :func:`decode` reads each map's peak with a
-sub-pixel Gaussian fit and reports the peak height as the point's confidence.
+σ = :data:`HEATMAP_SIGMA` px with peak 1; :func:`peak_candidates` lists each map's peaks
+with their heights (the points' confidence) and :func:`refine_peak` places one to a
+fraction of a pixel with a Gaussian fit.
 
 Weights are stored as ``.npz`` (one array per parameter plus a JSON ``meta`` entry), not as
 a pickle, so loading them runs no code.
@@ -118,29 +119,6 @@ def refine_peak(heatmap: NDArray[np.float32], u: int, v: int) -> tuple[float, fl
     return out[0], out[1]
 
 
-def decode(heatmaps: NDArray[np.float32]) -> tuple[FloatArray, FloatArray]:
-    """The highest peak of each map.
-
-    Parameters
-    ----------
-    heatmaps : ndarray, shape (K, H, W)
-
-    Returns
-    -------
-    points : ndarray, shape (K, 2)
-        ``(u, v)`` in px: the arg-max refined by :func:`refine_peak`.
-    confidence : ndarray, shape (K,)
-        Peak heights (≈ 1 for a clear point, ≈ 0 where the model sees none).
-    """
-    k, _, w = heatmaps.shape
-    flat = heatmaps.reshape(k, -1)
-    idx = np.argmax(flat, axis=1)
-    conf = flat[np.arange(k), idx].astype(np.float64)
-    v, u = np.divmod(idx, w)
-    points = np.array([refine_peak(heatmaps[i], int(u[i]), int(v[i])) for i in range(k)])
-    return points, conf
-
-
 def peak_candidates(
     heatmaps: NDArray[np.float32], max_peaks: int = 3, min_height: float = 0.2
 ) -> list[tuple[NDArray[np.intp], FloatArray]]:
@@ -158,8 +136,14 @@ def peak_candidates(
             v, u = np.unravel_index(int(np.argmax(hm)), hm.shape)
             vs, us = np.array([v]), np.array([u])
         heights = hm[vs, us].astype(np.float64)
-        order = np.argsort(-heights)[:max_peaks]
-        out.append((np.column_stack([us[order], vs[order]]), heights[order]))
+        keep: list[int] = []
+        for i in np.argsort(-heights, kind="stable"):
+            # equal neighbours (a peak midway between pixels) are one peak
+            if all(abs(us[i] - us[j]) > 2 or abs(vs[i] - vs[j]) > 2 for j in keep):
+                keep.append(int(i))
+            if len(keep) == max_peaks:
+                break
+        out.append((np.column_stack([us[keep], vs[keep]]), heights[keep]))
     return out
 
 
