@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -148,6 +150,24 @@ def load_annotations(path: str | Path) -> list[tuple[str, FloatArray]]:
     return rows
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def _rgb(bgr: NDArray[Any]) -> U8:
+    return np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+
+
+@contextmanager
+def _video(source: Path) -> Iterator[cv2.VideoCapture]:
+    cap = cv2.VideoCapture(str(source))
+    if not cap.isOpened():
+        raise ValueError(f"{source}: not an image folder or a readable video")
+    try:
+        yield cap
+    finally:
+        cap.release()
+
+
 def read_frames(source: str | Path, names: Sequence[str]) -> Iterator[U8]:
     """RGB frames named in an annotation file, from a folder of images or a video file."""
     source = Path(source)
@@ -156,12 +176,9 @@ def read_frames(source: str | Path, names: Sequence[str]) -> Iterator[U8]:
             bgr = cv2.imread(str(source / name), cv2.IMREAD_COLOR)
             if bgr is None:
                 raise ValueError(f"{source / name}: cannot read image")
-            yield np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+            yield _rgb(bgr)
         return
-    cap = cv2.VideoCapture(str(source))
-    if not cap.isOpened():
-        raise ValueError(f"{source}: not an image folder or a readable video")
-    try:
+    with _video(source) as cap:
         for name in names:
             try:
                 index = int(name)
@@ -173,12 +190,7 @@ def read_frames(source: str | Path, names: Sequence[str]) -> Iterator[U8]:
             ok, bgr = cap.read()
             if not ok:
                 raise ValueError(f"{source}: cannot read frame {index}")
-            yield np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
-    finally:
-        cap.release()
-
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+            yield _rgb(bgr)
 
 
 def iter_frames(source: str | Path) -> Iterator[tuple[str, U8]]:
@@ -193,19 +205,14 @@ def iter_frames(source: str | Path) -> Iterator[tuple[str, U8]]:
             raise ValueError(f"{source}: no images ({', '.join(IMAGE_SUFFIXES)})")
         yield from zip(names, read_frames(source, names), strict=True)
         return
-    cap = cv2.VideoCapture(str(source))
-    if not cap.isOpened():
-        raise ValueError(f"{source}: not an image folder or a readable video")
-    try:
+    with _video(source) as cap:
         index = 0
         while True:
             ok, bgr = cap.read()
             if not ok:
                 break
-            yield str(index), np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+            yield str(index), _rgb(bgr)
             index += 1
-    finally:
-        cap.release()
 
 
 def real_samples(

@@ -22,6 +22,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+import torch
 
 from magrun.robot import RobotParams, wrap_angle
 from magrun.scene import Walls
@@ -105,11 +106,5 @@ def evaluate(
             r.name: summary([x for x in tracking if x["robot"] == r.name]) for r in robots
         },
         "search": summary(searching) if searching else None,
-        "torch_threads": _torch_threads(),
+        "torch_threads": torch.get_num_threads(),
     }  # fmt: skip
-
-
-def _torch_threads() -> int:
-    import torch
-
-    return int(torch.get_num_threads())
