@@ -11,7 +11,7 @@ What a frame shows, back to front:
 
 Then the camera model: Gaussian blur (``blur_px``), lighting (a per-trial gain, white balance,
 illumination gradient and vignetting, plus frame-to-frame flicker) and Gaussian sensor noise.
-Shapes are drawn by exact area coverage (4 × 4 supersampling), so a label sits on the drawn
+Shapes are drawn by exact area coverage (8 × 8 supersampling), so a label sits on the drawn
 robot to well under the tracker's error. Frames are ``uint8`` RGB arrays, shape (H, W, 3).
 
     >>> from magrun.robot import load_robot
@@ -38,7 +38,7 @@ F32 = NDArray[np.float32]
 
 _SHIFT = 4  # OpenCV fixed-point bits: coordinates at 1/16 px
 _ONE = 1 << _SHIFT
-_SUPERSAMPLE = 4  # shapes are rasterised at 4 × 4 samples per pixel
+_SUPERSAMPLE = 8  # shapes are rasterised at 8 × 8 samples per pixel
 _ARC = 16  # polygon edges per half-circle
 
 FLUID = (0.74, 0.79, 0.82)
@@ -116,7 +116,7 @@ class _Canvas:
 
     Each shape is rasterised on a ×:data:`_SUPERSAMPLE` grid (pixel centres inside the shape)
     and box-filtered down, so a pixel gets the fraction of it the shape covers: outlines and
-    centroids land within ~0.1 px (tests/test_tracking.py). OpenCV's own anti-aliasing
+    centroids land within ~0.05 px (tests/test_tracking.py allows 0.1). OpenCV's own anti-aliasing
     dilates a filled shape by about half a pixel, unevenly, which put the labels off the
     drawn robot by up to 0.4 px.
     Shapes are drawn into a window (``origin``, the image's size) of the frame, so the cost
