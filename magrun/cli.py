@@ -9,6 +9,9 @@
     magrun tracker eval --json                     # held-out tracker accuracy and speed
     magrun tracker run clip.mp4 --px-per-mm 4.2 --out poses.csv    # track a lab's footage
     magrun bench nmpc --json                       # NMPC solve times, Zernike vs lookup table
+    magrun validate protocols/*.yaml               # check protocols before running anything
+    magrun run protocols/rate.yaml --jobs 2        # run, record MCAP + Rerun, manifest
+    magrun view recordings/rate/proposed_rate-3hz/trial-0.rrd      # open in the Rerun viewer
 
 Bad input (a malformed file, an unknown option value) exits with status 2 and one message
 naming the file (and line where there is one); it never prints a traceback.
@@ -622,6 +625,222 @@ def tracker_eval(
             f" {r['rms_orientation_deg']:.2f}°  failures {100 * r['failure_rate']:.1f} %"
             f"  median {r['median_ms']:.2f} ms/frame"
         )
+
+
+# --------------------------------------------------------------------------------------------
+# protocols, runs, recordings
+
+
+def _load_protocols(paths: tuple[Path, ...]) -> list[Any]:
+    """Every protocol, or one InputError listing every problem in every file."""
+    from magrun.protocol import load_protocol
+    from magrun.yamlio import YamlModelError
+
+    protocols, problems = [], []
+    for path in paths:
+        try:
+            protocols.append(load_protocol(path))
+        except YamlModelError as exc:
+            problems.extend(exc.problems)
+    if problems:
+        raise InputError("\n".join(problems))
+    return protocols
+
+
+@cli.command("validate")
+@click.argument("protocols", nargs=-1, required=True, type=click.Path(path_type=Path))
+def validate(protocols: tuple[Path, ...]) -> None:
+    """Check protocol files without running anything.
+
+    Exit status 0 when every file is valid; 2 with one line per problem (file:line: field:
+    message) otherwise.
+    """
+    for path, protocol in zip(protocols, _load_protocols(protocols), strict=True):
+        n, nq = len(protocol.expand()), len(protocol.expand(quick=True))
+        click.echo(f"{path}: ok ({protocol.name}: {n} trials, {nq} with --quick)")
+
+
+@cli.group("protocol")
+def protocol_group() -> None:
+    """Protocol files: their JSON Schema."""
+
+
+@protocol_group.command("schema")
+@click.option("--out", type=click.Path(path_type=Path), help="Write to a file instead.")
+def protocol_schema(out: Path | None) -> None:
+    """Print the protocol JSON Schema (for editors: completion and checking of YAML files)."""
+    from magrun.atomic import write_text
+    from magrun.protocol import json_schema
+
+    text = json_schema()
+    if out is None:
+        click.echo(text, nl=False)
+    else:
+        write_text(out, text)
+        click.echo(f"wrote {out}", err=True)
+
+
+class _RunProgress:
+    """A bar per protocol (trials) and one per running trial (ticks), on a terminal only."""
+
+    def __init__(self, name: str, total: int) -> None:
+        from tqdm import tqdm
+
+        self._tqdm = tqdm
+        self.bar = tqdm(total=total, desc=name, unit="trial", position=0, disable=None)
+        self.trials: dict[str, Any] = {}
+        self.failed = 0
+
+    def tick(self, relpath: str, done: int, total: int) -> None:
+        bar = self.trials.get(relpath)
+        if bar is None:
+            slot = len(self.trials) + 1
+            bar = self._tqdm(
+                total=total, desc=relpath.split("/", 1)[1], unit="tick", leave=False,
+                position=slot, disable=None,
+            )  # fmt: skip
+            self.trials[relpath] = bar
+        bar.update(done - bar.n)
+
+    def trial_done(self, entry: dict[str, Any]) -> None:
+        bar = self.trials.pop(f"{entry['protocol']}/{entry['path']}", None)
+        if bar is not None:
+            bar.close()
+        self.failed += entry["status"] != "ok"
+        self.bar.update(1)
+        if self.failed:
+            self.bar.set_postfix(failed=self.failed)
+
+    def close(self) -> None:
+        for bar in self.trials.values():
+            bar.close()
+        self.bar.close()
+
+
+def _summary(manifest: dict[str, Any]) -> list[str]:
+    """One line per condition: trials ok, mean RMS errors, overruns, drops, wall time."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for e in manifest["trials"]:
+        groups.setdefault(e["path"].rsplit("/", 1)[0], []).append(e)
+    width = max(len(k) for k in groups)
+    lines = [
+        f"{'condition':<{width}}  ok   RMS mm  RMS deg  overrun  dropped  wall s",
+    ]
+    for slug, entries in groups.items():
+        ok = [e for e in entries if e["status"] == "ok"]
+
+        def mean(key: str, rows: list[dict[str, Any]] = ok) -> float:
+            vals = [r[key] for r in rows if r.get(key) is not None]
+            return float(np.mean(vals)) if vals else math.nan
+
+        ticks = sum(e.get("ticks", 0) for e in ok)
+        overrun = sum(e.get("overruns", 0) for e in ok) / ticks if ticks else math.nan
+        lines.append(
+            f"{slug:<{width}}  {len(ok)}/{len(entries)}  {mean('rms_position_mm'):6.3f}"
+            f"  {mean('rms_orientation_deg'):7.2f}  {overrun:6.0%}"
+            f"  {sum(e.get('dropped_ticks', 0) for e in entries):7d}"
+            f"  {sum(e.get('wall_s', 0.0) for e in entries):6.0f}"
+        )
+    for e in manifest["trials"]:
+        if e["status"] != "ok":
+            lines.append(f"FAILED {e['path']}: {e.get('error', '')}")
+    return lines
+
+
+@cli.command("run")
+@click.argument("protocol_file", type=click.Path(path_type=Path))
+@click.option(
+    "--out", type=click.Path(path_type=Path), default=Path("recordings"), show_default=True,
+    help="Recordings go to OUT/<protocol name>/.",
+)  # fmt: skip
+@click.option("--quick", is_flag=True, help="One trial of a reduced set, shorter (the demo).")
+@click.option("--seed", type=click.IntRange(min=0), help="Override the protocol's seed.")
+@click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Trials run in parallel, one process each.")  # fmt: skip
+@click.option("--rig", type=click.Choice(["sim", "hardware"]), default="sim", show_default=True)
+@click.option(
+    "--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
+    help="local: this machine's processes (--jobs); ray: Ray tasks (pip install magrun[ray]).",
+)  # fmt: skip
+@click.option("--ray-address", help="Ray cluster to join (default: start a local instance).")
+@click.option("--overwrite", is_flag=True, help="Replace OUT/<protocol>/ if it exists.")
+def run(
+    protocol_file: Path,
+    out: Path,
+    quick: bool,
+    seed: int | None,
+    jobs: int,
+    rig: str,
+    executor: str,
+    ray_address: str | None,
+    overwrite: bool,
+) -> None:
+    """Run every trial of a protocol and record each to MCAP and Rerun.
+
+    The protocol is validated first; a bad file exits with status 2 before anything runs.
+    Writes OUT/<protocol>/<condition>/trial-<k>.{mcap,rrd} and OUT/<protocol>/manifest.json,
+    then prints a summary per condition. Exit status 1 when a trial failed (the manifest
+    holds its error; the other trials' recordings are complete).
+    """
+    from magrun.runner import RunError, local_executor, ray_executor, run_protocol
+
+    (protocol,) = _load_protocols((protocol_file,))
+    n = len(protocol.expand(quick=quick, seed=seed))
+    chosen = ray_executor(ray_address, jobs) if executor == "ray" else local_executor(jobs)
+    progress = _RunProgress(protocol.name, n)
+    t0 = time.perf_counter()
+    try:
+        manifest = run_protocol(
+            protocol, out, quick=quick, seed=seed, jobs=jobs, rig=rig, executor=chosen,
+            overwrite=overwrite, protocol_file=str(protocol_file), on_trial=progress.trial_done,
+            progress=progress.tick,
+        )  # fmt: skip
+    except RunError as exc:
+        raise InputError(str(exc)) from exc
+    finally:
+        progress.close()
+    wall = time.perf_counter() - t0
+    for line in _summary(manifest):
+        click.echo(line)
+    failed = sum(e["status"] != "ok" for e in manifest["trials"])
+    dropped = sum(e.get("dropped_ticks", 0) for e in manifest["trials"])
+    click.echo(
+        f"{len(manifest['trials'])} trials in {wall:.0f} s -> {out / protocol.name}"
+        + (f"; {dropped} ticks dropped by the recorder" if dropped else "")
+    )
+    if failed:
+        raise click.ClickException(f"{failed} trial(s) failed; see {out / protocol.name}")
+
+
+@cli.command("view")
+@click.argument("recording", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--save", type=click.Path(dir_okay=False, path_type=Path),
+    help="Write an .rrd (an .mcap is converted) instead of opening the viewer.",
+)  # fmt: skip
+def view(recording: Path, save: Path | None) -> None:
+    """Open a recording (.rrd or .mcap) in the Rerun viewer, or save it as an .rrd."""
+    import shutil
+    import subprocess
+
+    suffix = recording.suffix.lower()
+    if suffix not in (".rrd", ".mcap"):
+        raise InputError(f"{recording}: not a recording (.rrd or .mcap)")
+    rerun = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+    if save is None:
+        sys.exit(subprocess.call([rerun, str(recording)]))
+    if save.suffix.lower() != ".rrd":
+        raise InputError(f"--save {save}: the output must be an .rrd file")
+    if suffix == ".rrd":
+        shutil.copyfile(recording, save)
+    else:
+        done = subprocess.run(
+            [rerun, "mcap", "convert", str(recording), "-o", str(save)],
+            capture_output=True, text=True, check=False,
+        )  # fmt: skip
+        if done.returncode != 0:
+            raise click.ClickException(f"rerun mcap convert failed: {done.stderr.strip()}")
+    click.echo(f"wrote {save}")
 
 
 @cli.group()

@@ -20,6 +20,7 @@ through. The runner (protocols, recording) builds on this loop; it records every
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -62,6 +63,7 @@ class TrialLog:
     predicted: FloatArray  # (n, 3), the previous tick's prediction of this tick; NaN at k = 0
     currents: FloatArray  # (n, n_channels), as applied
     status: list[ControllerStatus]
+    compute_time: FloatArray  # (n,) s, tracking + feedback + controller per tick
 
     @property
     def position_error(self) -> FloatArray:
@@ -94,6 +96,24 @@ class TrialLog:
         return np.array([s.solve_time for s in self.status])
 
 
+@dataclass(frozen=True)
+class Tick:
+    """Everything one control tick saw and did (SI units), as handed to ``on_tick``."""
+
+    k: int
+    t: float  # s from the trial start
+    actual: FloatArray  # (3,)
+    tracked: FloatArray | None  # camera pose, None when no tracker or the tracker lost it
+    measured: FloatArray | None  # the feedback, None when no fluoroscopy frame arrived
+    estimated: FloatArray
+    predicted: FloatArray | None  # the previous tick's prediction of this tick
+    desired: FloatArray
+    currents: FloatArray  # as applied, A
+    status: ControllerStatus
+    compute_time: float  # s: tracking + feedback + controller, wall clock
+    frame: NDArray[np.uint8] | None = None
+
+
 def run_trial(
     controller: Controller,
     rig: Rig,
@@ -103,37 +123,43 @@ def run_trial(
     duration: float | None = None,
     progress: Callable[[int, int], None] | None = None,
     tracker: PoseTracker | None = None,
+    on_tick: Callable[[Tick], None] | None = None,
+    charge_compute: bool = False,
+    clock: Callable[[], float] = time.perf_counter,
 ) -> TrialLog:
     """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
 
     With a ``tracker``, the controller's feedback comes from the rig's camera frames (the rig
     must have a camera); without one, from the actual pose. Give a fresh ``feedback`` per
     trial (a :class:`~magrun.tracking.fluoroscopy.FluoroscopyMimic` keeps its schedule).
+
+    ``charge_compute`` (for simulated rigs) makes the loop's timing honest: the wall time
+    ``c`` of tracking, feedback and the controller passes on the plant, with the previous
+    currents, before the new currents apply, and a tick lasts ``max(Δt, c)``: a controller
+    slower than the control rate runs slower, as on hardware. Without it the plant waits for
+    the controller (zero latency; the trial is then independent of the machine's speed).
+
+    ``on_tick`` receives a :class:`Tick` after each tick's currents are applied (the
+    recorder's hook); it runs on the loop's thread, so it must be quick.
     """
     dt = controller.dt
     total = reference.duration + 1.0 if duration is None else duration
-    n = math.floor(total / dt + 1e-9) + 1
+    n_nominal = math.floor(total / dt + 1e-9) + 1
     start = reference.pose(0.0)
     rig.reset(start)
     controller.reset(start)
     if tracker is not None:
         tracker.reset()
-    n_ch = controller.n_channels
-    log = TrialLog(
-        t=np.zeros(n),
-        actual=np.zeros((n, 3)),
-        tracked=np.full((n, 3), np.nan),
-        desired=np.zeros((n, 3)),
-        measured=np.full((n, 3), np.nan),
-        estimated=np.zeros((n, 3)),
-        predicted=np.full((n, 3), np.nan),
-        currents=np.zeros((n, n_ch)),
-        status=[],
-    )
-    prediction = np.full(3, np.nan)
+    rows: dict[str, list[FloatArray]] = {k: [] for k in _LOG_ARRAYS}
+    statuses: list[ControllerStatus] = []
+    compute: list[float] = []
+    nan3 = np.full(3, np.nan)
+    prediction: FloatArray | None = None
     offsets = np.arange(horizon + 1) * dt
-    for k in range(n):
+    k, t = 0, 0.0
+    while t <= total + 1e-9:
         obs = rig.observe()
+        t0 = clock()
         if tracker is None:
             camera_pose: FloatArray | None = obs.pose
         elif obs.frame is None:
@@ -143,20 +169,50 @@ def run_trial(
         z = feedback(obs.t, camera_pose)
         window = reference.pose(obs.t + offsets)
         out = controller.step(z, window)
+        c = clock() - t0
+        period = max(dt, c) if charge_compute else dt
+        if charge_compute:
+            rig.advance(c)  # the previous currents drive the plant while the controller works
         applied = rig.apply(out.currents)
-        log.t[k] = obs.t
-        log.actual[k] = obs.pose
-        if camera_pose is not None:
-            log.tracked[k] = camera_pose
-        log.desired[k] = window[0]
-        if z is not None:
-            log.measured[k] = z
-        log.estimated[k] = out.estimate
-        log.predicted[k] = prediction
-        log.currents[k] = applied
-        log.status.append(out.status)
+        tick = Tick(
+            k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
+            measured=z, estimated=out.estimate, predicted=prediction, desired=window[0],
+            currents=applied, status=out.status, compute_time=c, frame=obs.frame,
+        )  # fmt: skip
+        for name, value in (
+            ("t", np.array([obs.t])),
+            ("actual", obs.pose),
+            ("tracked", nan3 if camera_pose is None else camera_pose),
+            ("desired", window[0]),
+            ("measured", nan3 if z is None else z),
+            ("estimated", out.estimate),
+            ("predicted", nan3 if prediction is None else prediction),
+            ("currents", applied),
+        ):
+            rows[name].append(np.asarray(value, dtype=np.float64))
+        statuses.append(out.status)
+        compute.append(c)
+        if on_tick is not None:
+            on_tick(tick)
         prediction = out.predicted
-        rig.advance(dt)
+        rest = period - c if charge_compute else dt
+        if rest > 0:
+            rig.advance(rest)
+        t = obs.t + period
+        k += 1
         if progress is not None:
-            progress(k + 1, n)
-    return log
+            progress(min(k, n_nominal), n_nominal)
+    if progress is not None and k < n_nominal:
+        progress(n_nominal, n_nominal)
+    arrays = {name: np.stack(rows[name]) for name in _LOG_ARRAYS}
+    return TrialLog(
+        **{name: arrays[name] for name in _LOG_ARRAYS if name != "t"},
+        t=arrays["t"][:, 0],
+        status=statuses,
+        compute_time=np.array(compute),
+    )
+
+
+_LOG_ARRAYS = (
+    "t", "actual", "tracked", "desired", "measured", "estimated", "predicted", "currents",
+)  # fmt: skip

@@ -104,6 +104,48 @@ def s_trajectory(
     return _path_to_trajectory(points[keep], headings[keep], speed)
 
 
+def out_and_back(
+    points: ArrayLike, speed: float = 0.003, hold: float = 5.0, flip: float = 3.0
+) -> Trajectory:
+    """Along a polyline, hold, turn round in place, and back (the spine experiment).
+
+    The robot's axis follows the path out at ``speed`` (m/s), station-keeps ``hold`` s at the
+    far end, turns by +180° in place over ``flip`` s (uniformly), and comes back along the
+    same path, heading home, to the start. ``points`` (n, 2) in m.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
+        raise ValueError("out_and_back needs a path of at least 2 points (n, 2)")
+    keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-12])
+    pts = pts[keep]
+    d = np.diff(pts, axis=0)
+    heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
+    heading = np.append(heading, heading[-1])  # vertex i takes segment i's direction
+    out = _path_to_trajectory(pts, heading, speed)
+    t_far = out.duration
+    theta_far = float(out.poses[-1, 2])
+    n_flip = 25
+    flip_t = t_far + hold + np.linspace(0.0, flip, n_flip)
+    flip_theta = theta_far + np.linspace(0.0, math.pi, n_flip)
+    back = _path_to_trajectory(pts[::-1], heading[::-1] + math.pi, speed)
+    t0_back = t_far + hold + flip
+    t = np.concatenate(
+        [out.t, [t_far + hold] if hold > 0 else [], flip_t[1:], back.t[1:] + t0_back]
+    )
+    far = pts[-1]
+    poses = np.concatenate(
+        [
+            out.poses,
+            np.array([[far[0], far[1], theta_far]])[: 1 if hold > 0 else 0],
+            np.column_stack(
+                [np.full(n_flip - 1, far[0]), np.full(n_flip - 1, far[1]), flip_theta[1:]]
+            ),
+            back.poses[1:],
+        ]
+    )
+    return Trajectory(t=t, poses=poses)
+
+
 @dataclass(frozen=True)
 class Walls:
     """Straight wall segments, shape (n, 2, 2): ``segments[i] = [[x0, y0], [x1, y1]]`` in m."""
@@ -157,3 +199,70 @@ class Walls:
             if vn < 0:
                 v = v - vn * n
         return p, v, touched
+
+    def resolve_capsule(
+        self,
+        state: tuple[float, ...],
+        half_axis: float,
+        radius: float,
+        translational_drag: float,
+        rotational_drag: float,
+        iterations: int = 16,
+    ) -> tuple[tuple[float, ...], bool]:
+        """:meth:`resolve` for a capsule body, translating and turning it out of the walls.
+
+        The body is disks of ``radius`` along its axis, at most ``radius``/2 apart over
+        ±``half_axis`` (a wall slips between two by under 3 % of the radius). For the deepest
+        penetration, of depth δ along the wall normal n at arm r from the centre, the body
+        moves as a drag-dominated body would under a contact force along n: with mobilities
+        1/c_t (translation) and 1/c_r (rotation) and w = 1/c_t + (r × n)²/c_r,
+
+            Δp = n δ / (c_t w),   Δθ = (r × n) δ / (c_r w),
+
+        and the contact point's velocity into the wall is removed the same way (inelastic,
+        frictionless). Repeated up to ``iterations`` times, for corners and for a body jammed
+        across a channel (the plant's 1 ms steps leave µm penetrations: a pass or two). A flat
+        side resting on a wall is pushed at the middle of its equally deep disks (no turn).
+        ``state`` is ``(x, y, θ, vx, vy, ω)``; returns the new state and whether it touched.
+        """
+        x, y, th, vx, vy, om = state
+        if self.segments.size == 0:
+            return state, False
+        n_disk = math.ceil(2 * half_axis / (radius / 2)) + 1 if half_axis > 0 else 1
+        s = np.linspace(-half_axis, half_axis, n_disk) if n_disk > 1 else np.zeros(1)
+        a, b = self.segments[:, 0], self.segments[:, 1]
+        ab = b - a
+        den = np.einsum("ij,ij->i", ab, ab)
+        touched = False
+        for _ in range(iterations):
+            axis = np.array([math.cos(th), math.sin(th)])
+            pts = np.array([x, y]) + s[:, None] * axis  # (m, 2)
+            rel = pts[:, None, :] - a[None]  # (m, n, 2)
+            u = np.clip(np.einsum("mnk,nk->mn", rel, ab) / den, 0.0, 1.0)
+            d = rel - u[..., None] * ab[None]
+            dist = np.hypot(d[..., 0], d[..., 1])
+            i, j = np.unravel_index(int(np.argmin(dist)), dist.shape)
+            if dist[i, j] >= radius * (1 - 1e-9):
+                break
+            touched = True
+            if dist[i, j] > 1e-12:
+                n = d[i, j] / dist[i, j]
+            else:  # centre on the wall line: push along the wall's normal toward the body
+                n = np.array([-ab[j, 1], ab[j, 0]]) / math.sqrt(den[j])
+            # a flat side resting on the wall: act at the middle of the equally deep disks
+            level = dist[:, j] <= dist[i, j] + 1e-3 * radius
+            r = float(np.mean(s[level])) * axis
+            rxn = float(r[0] * n[1] - r[1] * n[0])
+            w = 1.0 / translational_drag + rxn * rxn / rotational_drag
+            depth = radius - float(dist[i, j])
+            x += n[0] * depth / (translational_drag * w)
+            y += n[1] * depth / (translational_drag * w)
+            th += rxn * depth / (rotational_drag * w)
+            # velocity of the contact point along n
+            vc = vx * n[0] + vy * n[1] + om * rxn
+            if vc < 0:
+                impulse = -vc / w
+                vx += n[0] * impulse / translational_drag
+                vy += n[1] * impulse / translational_drag
+                om += rxn * impulse / rotational_drag
+        return (x, y, th, vx, vy, om), touched

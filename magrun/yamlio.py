@@ -27,10 +27,17 @@ class YamlModelError(ValueError):
         self.problems = problems
 
 
-def _line_of(root: yaml.Node | None, loc: tuple[int | str, ...]) -> int | None:
-    """1-based line of the deepest node on ``loc`` that exists in the document."""
-    node, line = root, (root.start_mark.line + 1) if root is not None else None
-    for key in loc:
+def _locate(
+    root: yaml.Node | None, loc: tuple[int | str, ...]
+) -> tuple[int | None, tuple[int | str, ...]]:
+    """1-based line of the deepest node on ``loc`` in the document, and ``loc`` as the user
+    wrote it: parts that are not keys of the document (pydantic's tags of a discriminated
+    union, e.g. ``workspace.spine_phantom.phantom``) are dropped, unless last (a missing key).
+    An empty document is line 1.
+    """
+    node, line = root, (root.start_mark.line + 1) if root is not None else 1
+    shown: list[int | str] = []
+    for i, key in enumerate(loc):
         nxt = None
         if isinstance(node, yaml.MappingNode):
             for k, v in node.value:
@@ -38,13 +45,17 @@ def _line_of(root: yaml.Node | None, loc: tuple[int | str, ...]) -> int | None:
                     # an unknown key is reported at the key itself; others at their value
                     nxt, line = v, k.start_mark.line + 1
                     break
+            if nxt is None and i + 1 < len(loc) and isinstance(key, str):
+                continue  # a union tag, not a key: look for the next part here
         elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
             nxt = node.value[key]
             line = nxt.start_mark.line + 1
+        shown.append(key)
         if nxt is None:
+            shown.extend(loc[i + 1 :])
             break
         node = nxt
-    return line
+    return line, tuple(shown)
 
 
 def _field_name(loc: tuple[int | str, ...]) -> str:
@@ -54,8 +65,14 @@ def _field_name(loc: tuple[int | str, ...]) -> str:
     return out or "(document)"
 
 
-def parse_yaml_model(text: str, model: type[M], source: str) -> M:
-    """Validate YAML ``text`` against ``model``; ``source`` names it in error messages."""
+def parse_yaml_model(
+    text: str, model: type[M], source: str, context: dict[str, Any] | None = None
+) -> M:
+    """Validate YAML ``text`` against ``model``; ``source`` names it in error messages.
+
+    ``context`` reaches the model's validators (``ValidationInfo.context``), e.g. the folder
+    that relative paths in the document are relative to.
+    """
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
         data: Any = yaml.safe_load(text)
@@ -65,21 +82,19 @@ def parse_yaml_model(text: str, model: type[M], source: str) -> M:
         problem = getattr(exc, "problem", None) or str(exc)
         raise YamlModelError([f"{where}: not valid YAML: {problem}"]) from exc
     try:
-        return model.model_validate(data if data is not None else {})
+        return model.model_validate(data if data is not None else {}, context=context)
     except ValidationError as exc:
         problems = []
         for err in exc.errors():
-            loc = tuple(err["loc"])
-            line = _line_of(root, loc)
-            where = f"{source}:{line}" if line is not None else source
-            problems.append(f"{where}: {_field_name(loc)}: {err['msg']}")
+            line, loc = _locate(root, tuple(err["loc"]))
+            problems.append(f"{source}:{line}: {_field_name(loc)}: {err['msg']}")
         raise YamlModelError(problems) from exc
 
 
-def load_yaml_model(path: str | Path, model: type[M]) -> M:
+def load_yaml_model(path: str | Path, model: type[M], context: dict[str, Any] | None = None) -> M:
     """Read and validate a YAML file; every problem raises :class:`YamlModelError`."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise YamlModelError([f"{path}: cannot read: {exc}"]) from exc
-    return parse_yaml_model(text, model, str(path))
+    return parse_yaml_model(text, model, str(path), context)

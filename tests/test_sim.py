@@ -123,3 +123,45 @@ def test_s_trajectory_geometry() -> None:
     err = (heading - ref.poses[:-1][moving, 2] + math.pi) % (2 * math.pi) - math.pi
     assert np.max(np.abs(err)) < 0.02
     assert_allclose(ref.pose(ref.duration + 5.0), ref.poses[-1])
+
+
+def _disk_clearance(walls: Walls, state: tuple[float, ...], half_axis: float) -> float:
+    """Smallest distance from the capsule's axis (sampled finely) to any wall."""
+    x, y, th = state[:3]
+    s = np.linspace(-half_axis, half_axis, 201)
+    pts = np.column_stack([x + s * np.cos(th), y + s * np.sin(th)])
+    return min(float(walls.distances(p).min()) for p in pts)
+
+
+def test_capsule_contact_pushes_and_turns_the_body_out_of_a_channel() -> None:
+    # a 7.4 x 2.8 mm capsule turned 40 deg in a straight 5 mm channel overlaps both walls;
+    # it can only fit turned by at most asin((2.5 - 1.4) / 2.3) = 28.6 deg
+    walls = Walls(
+        np.array([[[-0.05, -0.0025], [0.05, -0.0025]], [[-0.05, 0.0025], [0.05, 0.0025]]])
+    )
+    half, r = 2.3e-3, 1.4e-3
+    state = (0.0, 0.0, np.radians(40.0), 0.0, 0.0, 5.0)  # turning further into the walls
+    assert _disk_clearance(walls, state, half) < r
+    out, touched = walls.resolve_capsule(state, half, r, 2.53e-2, 3.4e-7)
+    assert touched
+    assert _disk_clearance(walls, out, half) >= r - 2e-6  # 16 passes resolve to within 2 µm
+    assert abs(out[2]) <= np.arcsin((2.5 - 1.4) / 2.3) + 1e-3
+    assert abs(out[5]) < 5.0  # the turn into the walls was slowed by the contact
+
+
+def test_capsule_clear_of_walls_is_untouched() -> None:
+    walls = Walls.box(0.05)
+    state = (0.01, -0.02, 0.3, 0.001, 0.002, 0.5)
+    assert walls.resolve_capsule(state, 6.6e-3, 1.4e-3, 3.5e-2, 2e-6) == (state, False)
+
+
+def test_capsule_contact_removes_only_the_velocity_into_the_wall() -> None:
+    walls = Walls.box(0.05)
+    # the capsule's centre disk touches the right wall, moving into it and along it
+    state = (0.05 - 1.3e-3, 0.0, np.pi / 2, 0.004, 0.003, 0.0)
+    out, touched = walls.resolve_capsule(state, 2.3e-3, 1.4e-3, 2.5e-2, 3.4e-7)
+    assert touched
+    assert out[0] == pytest.approx(0.05 - 1.4e-3, abs=1e-12)
+    assert out[3] == pytest.approx(0.0, abs=1e-12)  # into the wall: gone
+    assert out[4] == pytest.approx(0.003)  # along the wall: kept
+    assert out[2] == pytest.approx(np.pi / 2)  # pushed at its centre: no turn

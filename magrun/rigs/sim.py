@@ -14,7 +14,8 @@ What the controllers do not know, and the plant does:
 - the robot's mass, drag and moment, and every coil's gain, are drawn per trial from
   :class:`Perturbation` around the nominal values (seeded: a trial is reproducible);
 - the amplifiers ramp each current toward its command at the slew limit instead of stepping;
-- walls stop the robot (inelastic, frictionless contact of its cross-section disk).
+- walls stop the robot's body, a capsule (inelastic, frictionless contact that pushes and
+  turns it out as drag lets it: :meth:`magrun.scene.Walls.resolve_capsule`).
 
 With a ``camera``, every observation carries a rendered top-view frame of the true pose
 (:mod:`magrun.tracking.render`: the robot's look, the walls, blur, lighting, sensor noise),
@@ -121,6 +122,7 @@ class SimRig(Rig):
         self.seed = seed
         self._renderer: Renderer | None = None
         self._contact_radius = robot.diameter / 2
+        self._half_axis = max(robot.length / 2 - self._contact_radius, 0.0)
         self.reset([0.0, 0.0, 0.0])
 
     @classmethod
@@ -176,11 +178,11 @@ class SimRig(Rig):
             drive = 0.5 * (self.driven + nxt) * self.coil_gains
             self.driven = nxt
             state = discrete_step(state, partial(self._field, drive), self.robot, h, substeps=1)
-            p, v, touched = self.walls.resolve(
-                np.array(state[:2]), np.array(state[3:5]), self._contact_radius
-            )
+            state, touched = self.walls.resolve_capsule(
+                state, self._half_axis, self._contact_radius,
+                self.robot.drag_perpendicular, self.robot.drag_rotation,
+            )  # fmt: skip
             if touched:
-                state = (p[0], p[1], state[2], v[0], v[1], state[5])
                 self._contact = True
         self.state = np.array(state, dtype=np.float64)
         self.t += duration

@@ -1,0 +1,418 @@
+"""Declarative experiment protocols: the YAML schema, validation, and expansion into trials.
+
+A protocol names a robot, a workspace, a reference trajectory, the methods to compare, the
+conditions to sweep and those to hold fixed, and how many trials to run of each::
+
+    name: rate_under_noise
+    robot: magnet
+    workspace: {kind: open}
+    trajectory: {kind: s_curve, size_mm: 43, speed_mm_s: 3}
+    methods: [proposed, baseline1, baseline2, baseline3, baseline4]
+    sweep: {tracking_rate_hz: [3, 5, 7.5, 10, 15, 25.5]}
+    conditions: {noise_sigma_mm: 2.0}
+    trials: 3
+
+    >>> from magrun.protocol import load_protocol
+    >>> protocol = load_protocol("protocols/rate.yaml")          # doctest: +SKIP
+    >>> trials = protocol.expand()                                # method × sweep × trials
+
+Every model forbids unknown keys; :func:`load_protocol` raises
+:class:`~magrun.yamlio.YamlModelError` naming the file, the YAML line and the field of every
+problem. ``magrun protocol schema`` prints :func:`json_schema` for editors.
+
+Conditions (:class:`Conditions`) are what a sweep may vary: the fluoroscopy rate and the
+feedback noise. A trial's seed depends on the protocol seed, the index of its swept
+condition (not the method) and its repeat index, so every method meets the same plant
+perturbations, lighting and noise draws in the same condition and repeat (paired
+comparisons), and the same protocol and seed give the same trials whatever runs them.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+)
+
+from magrun.control.methods import METHODS
+from magrun.yamlio import load_yaml_model
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --------------------------------------------------------------------------------------------
+# conditions
+
+
+class Conditions(_Strict):
+    """Feedback conditions of one trial (unit-suffixed, converted to SI by the runner)."""
+
+    tracking_rate_hz: PositiveFloat | None = Field(
+        None, description="Fluoroscopy (feedback) frame rate, Hz; default: every control tick."
+    )
+    noise_sigma_mm: NonNegativeFloat = Field(
+        0.0, description="Gaussian feedback noise, standard deviation on x and on y, mm."
+    )
+    noise_sigma_deg: NonNegativeFloat = Field(
+        0.0, description="Gaussian feedback noise on the heading, standard deviation, degrees."
+    )
+
+
+#: how each condition is written in a condition slug (``rate-3hz``) and in results
+CONDITION_SLUGS = {
+    "tracking_rate_hz": ("rate", "hz"),
+    "noise_sigma_mm": ("sigma", "mm"),
+    "noise_sigma_deg": ("sigmatheta", "deg"),
+}
+
+SweepValues = Annotated[list[NonNegativeFloat], Field(min_length=1)]
+
+
+class Sweep(_Strict):
+    """Conditions to vary: each key lists its values; trials cover every combination."""
+
+    tracking_rate_hz: Annotated[list[PositiveFloat], Field(min_length=1)] | None = None
+    noise_sigma_mm: SweepValues | None = None
+    noise_sigma_deg: SweepValues | None = None
+
+    @field_validator("*")
+    @classmethod
+    def _distinct(cls, values: list[float] | None) -> list[float] | None:
+        if values is not None and len(set(values)) != len(values):
+            raise ValueError("sweep values must be distinct")
+        return values
+
+    def items(self) -> list[tuple[str, list[float]]]:
+        return [(k, v) for k, v in self.model_dump().items() if v is not None]
+
+
+# --------------------------------------------------------------------------------------------
+# workspace and trajectory
+
+
+class OpenWorkspace(_Strict):
+    """The open fluid container: the coil workspace's square walls."""
+
+    kind: Literal["open"]
+
+
+class PhantomWorkspace(_Strict):
+    """A phantom whose boundaries are a polygon file (:mod:`magrun.phantom`)."""
+
+    kind: Literal["spine_phantom"]
+    phantom: str = Field(
+        description="Phantom polygon file (YAML), relative to the protocol file's folder."
+    )
+
+    @field_validator("phantom")
+    @classmethod
+    def _load(cls, value: str, info: ValidationInfo) -> str:
+        from magrun.phantom import load_phantom
+
+        path = _resolve(value, info)
+        load_phantom(path)  # its own errors name the phantom file and line
+        return str(path)
+
+
+class SCurve(_Strict):
+    """The paper's S-shaped path in a square (Section III-A), heading along the path."""
+
+    kind: Literal["s_curve"]
+    size_mm: PositiveFloat = 43.0
+    speed_mm_s: PositiveFloat = 3.0
+
+
+class OutAndBack(_Strict):
+    """Along a path, hold, turn round in place, and back to the start (the spine experiment).
+
+    The path is the phantom's ``path`` (``path: phantom``) or explicit points in mm.
+    """
+
+    kind: Literal["out_and_back"]
+    path: Literal["phantom"] | Annotated[list[tuple[float, float]], Field(min_length=2)]
+    speed_mm_s: PositiveFloat = 3.0
+    hold_s: NonNegativeFloat = Field(5.0, description="Station-keeping at the far end, s.")
+    flip_s: PositiveFloat = Field(3.0, description="Time to turn round (180°) in place, s.")
+
+
+Workspace = Annotated[OpenWorkspace | PhantomWorkspace, Field(discriminator="kind")]
+TrajectorySpec = Annotated[SCurve | OutAndBack, Field(discriminator="kind")]
+
+
+# --------------------------------------------------------------------------------------------
+# controller, feedback, recording, quick
+
+
+class KalmanSettings(_Strict):
+    """Kalman filter noise; ``measurement_sigma_mm: condition`` follows the trial's noise."""
+
+    measurement_sigma_mm: PositiveFloat | Literal["condition"] = Field(
+        "condition",
+        description=(
+            "Measurement noise assumed by the filter, mm; 'condition': the trial's "
+            "noise_sigma_mm, floored at tracker_sigma_mm."
+        ),
+    )
+    tracker_sigma_mm: PositiveFloat = Field(
+        0.1, description="The camera tracker's own noise, mm (the floor of the above)."
+    )
+    measurement_sigma_deg: PositiveFloat = 3.0
+    process_sigma_mm: PositiveFloat = 0.3
+    process_sigma_deg: PositiveFloat = 2.0
+
+
+class ControllerSettings(_Strict):
+    rate_hz: PositiveFloat = Field(25.5, description="Control rate, Hz.")
+    horizon: Annotated[int, Field(ge=1, le=100)] = Field(20, description="NMPC horizon, ticks.")
+    charge_compute_time: bool = Field(
+        True,
+        description=(
+            "In simulation, let the controller's real compute time pass on the plant before "
+            "its currents apply, and stretch the tick when it overruns the period (as on "
+            "hardware). Off: zero-latency, machine-independent, bit-reproducible trials."
+        ),
+    )
+    kalman: KalmanSettings = KalmanSettings()
+
+
+class FeedbackSettings(_Strict):
+    camera: bool = Field(
+        True,
+        description=(
+            "Track rendered camera frames with the UNet (frames are recorded); false: the "
+            "simulator's true pose feeds the fluoroscopy mimic, and no frames are recorded."
+        ),
+    )
+
+
+class RecordingSettings(_Strict):
+    image_every: Annotated[int, Field(ge=0)] = Field(
+        1, description="Record every n-th camera frame (0: none)."
+    )
+    jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 90
+
+
+class QuickSettings(_Strict):
+    """What ``--quick`` runs: one trial of fewer conditions over a shorter time."""
+
+    methods: Annotated[list[str], Field(min_length=1)] | None = None
+    sweep: Sweep | None = None
+    duration_s: PositiveFloat = 10.0
+
+    @field_validator("methods")
+    @classmethod
+    def _known(cls, methods: list[str] | None) -> list[str] | None:
+        return None if methods is None else _check_methods(methods)
+
+
+# --------------------------------------------------------------------------------------------
+# the protocol
+
+
+class Protocol(_Strict):
+    """One experiment: every trial it runs follows from this and its seed."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=80)
+    description: str = ""
+    robot: str = Field("magnet", description="A robot of robots.yaml.")
+    workspace: Workspace = Field(default_factory=lambda: OpenWorkspace(kind="open"))
+    trajectory: TrajectorySpec
+    methods: Annotated[list[str], Field(min_length=1)]
+    controller: ControllerSettings = ControllerSettings()
+    sweep: Sweep = Sweep()
+    conditions: Conditions = Conditions()
+    trials: Annotated[int, Field(ge=1, le=1000)] = 3
+    seed: Annotated[int, Field(ge=0, lt=2**63)] = 0
+    feedback: FeedbackSettings = FeedbackSettings()
+    recording: RecordingSettings = RecordingSettings()
+    duration_s: PositiveFloat | None = Field(
+        None, description="Trial length, s; default: the trajectory plus 1 s of hold."
+    )
+    quick: QuickSettings = QuickSettings()
+
+    @field_validator("methods")
+    @classmethod
+    def _known_methods(cls, methods: list[str]) -> list[str]:
+        return _check_methods(methods)
+
+    @field_validator("robot")
+    @classmethod
+    def _known_robot(cls, robot: str) -> str:
+        from magrun.robot import load_robots
+
+        names = sorted(load_robots())
+        if robot not in names:
+            raise ValueError(f"unknown robot {robot!r}; robots.yaml has {', '.join(names)}")
+        return robot
+
+    # fields are validated in order; these checks see the fields declared above them
+
+    @field_validator("trajectory")
+    @classmethod
+    def _path_needs_phantom(cls, traj: SCurve | OutAndBack, info: ValidationInfo) -> Any:
+        ws = info.data.get("workspace")
+        phantom_path = isinstance(traj, OutAndBack) and traj.path == "phantom"
+        if phantom_path and ws is not None and ws.kind != "spine_phantom":
+            raise ValueError("path 'phantom' needs a phantom workspace")
+        return traj
+
+    @field_validator("sweep")
+    @classmethod
+    def _sweep_rates(cls, sweep: Sweep, info: ValidationInfo) -> Sweep:
+        _check_rates(sweep.tracking_rate_hz or [], info)
+        return sweep
+
+    @field_validator("conditions")
+    @classmethod
+    def _fixed(cls, conditions: Conditions, info: ValidationInfo) -> Conditions:
+        sweep = info.data.get("sweep")
+        both = conditions.model_fields_set & {k for k, _ in sweep.items()} if sweep else set()
+        if both:
+            raise ValueError(f"{', '.join(sorted(both))}: both swept and fixed; choose one")
+        if conditions.tracking_rate_hz is not None:
+            _check_rates([conditions.tracking_rate_hz], info)
+        return conditions
+
+    # ---- expansion ---------------------------------------------------------------------
+
+    def expand(self, quick: bool = False, seed: int | None = None) -> list[Trial]:
+        """Every trial, in a fixed order: condition, then method, then repeat."""
+        methods = (self.quick.methods or self.methods) if quick else self.methods
+        sweep = self.sweep
+        if quick:
+            sweep = self.quick.sweep or Sweep(
+                **{k: sorted({v[0], v[-1]}) for k, v in self.sweep.items()}
+            )
+        items = sweep.items()
+        names = [k for k, _ in items]
+        base = self.conditions.model_dump()
+        repeats = 1 if quick else self.trials
+        root = self.seed if seed is None else seed
+        trials = []
+        for c_index, values in enumerate(itertools.product(*(v for _, v in items))):
+            condition = {**base, **dict(zip(names, values, strict=True))}
+            for method in methods:
+                slug = condition_slug(method, dict(zip(names, values, strict=True)))
+                for k in range(repeats):
+                    trial_seed = int(
+                        np.random.SeedSequence([root, c_index, k]).generate_state(1)[0]
+                    )
+                    trials.append(
+                        Trial(
+                            protocol=self,
+                            method=method,
+                            condition=condition,
+                            swept=tuple(names),
+                            index=k,
+                            seed=trial_seed,
+                            slug=slug,
+                            quick=quick,
+                        )
+                    )
+        return trials
+
+    def trial_duration(self, quick: bool = False) -> float | None:
+        """Seconds per trial, or None for the trajectory's own length plus 1 s."""
+        if quick:
+            return min(self.quick.duration_s, self.duration_s or math.inf)
+        return self.duration_s
+
+
+class Trial(BaseModel):
+    """One run: a method under one condition, repeat ``index``, with its own ``seed``."""
+
+    model_config = ConfigDict(frozen=True)
+
+    protocol: Protocol
+    method: str
+    condition: dict[str, float | None]
+    swept: tuple[str, ...]
+    index: int
+    seed: int
+    slug: str
+    quick: bool = False
+
+    @property
+    def relpath(self) -> str:
+        """``<protocol>/<condition slug>/trial-<k>`` (add ``.mcap`` / ``.rrd``)."""
+        return f"{self.protocol.name}/{self.slug}/trial-{self.index}"
+
+    def describe(self) -> dict[str, Any]:
+        """Protocol, method, every condition value, seed, index: the recording's metadata."""
+        return {
+            "protocol": self.protocol.name,
+            "method": self.method,
+            **self.condition,
+            "trial": self.index,
+            "seed": self.seed,
+            "quick": self.quick,
+        }
+
+
+def condition_slug(method: str, swept: dict[str, float | None]) -> str:
+    """``proposed_rate-3hz_sigma-2mm``: the method and the swept values, filesystem-safe."""
+    parts = [method]
+    for key, value in swept.items():
+        prefix, unit = CONDITION_SLUGS[key]
+        parts.append(f"{prefix}-{_number(value)}{unit}")
+    return "_".join(parts)
+
+
+def _number(value: float | None) -> str:
+    if value is None:
+        return "none"
+    return f"{value:g}"
+
+
+def _check_rates(rates: list[float], info: ValidationInfo) -> None:
+    controller = info.data.get("controller")
+    limit = controller.rate_hz if controller is not None else math.inf
+    fast = [r for r in rates if r > limit * (1 + 1e-9)]
+    if fast:
+        raise ValueError(
+            f"tracking rate {fast[0]:g} Hz is above the control rate {limit:g} Hz "
+            "(controller.rate_hz); feedback cannot arrive faster than the loop runs"
+        )
+
+
+def _check_methods(methods: list[str]) -> list[str]:
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown method {unknown[0]!r}; choose from {', '.join(METHODS)}")
+    if len(set(methods)) != len(methods):
+        raise ValueError("methods must be distinct")
+    return methods
+
+
+def _resolve(value: str, info: ValidationInfo) -> Path:
+    base = (info.context or {}).get("base_dir")
+    path = Path(value)
+    return path if path.is_absolute() or base is None else Path(base) / path
+
+
+def load_protocol(path: str | Path) -> Protocol:
+    """Read and validate a protocol file (raises :class:`~magrun.yamlio.YamlModelError`)."""
+    return load_yaml_model(path, Protocol, context={"base_dir": str(Path(path).parent)})
+
+
+def json_schema() -> str:
+    """The protocol JSON Schema (for editors' completion and checking), as text."""
+    schema = Protocol.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "magrun protocol"
+    return json.dumps(schema, indent=2) + "\n"

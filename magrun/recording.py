@@ -1,0 +1,496 @@
+"""Trial recordings: one MCAP file and one Rerun ``.rrd`` per trial, written off the loop.
+
+The layout and topics are the contract in ARCHITECTURE.md (and README, "Recording format"):
+
+================================  =============================  ==============================
+MCAP topic                        schema (protobuf)              Rerun entity
+================================  =============================  ==============================
+``/camera/image``                 ``foxglove.CompressedImage``   ``/camera/image`` (JPEG)
+``/robot/pose/<stream>``          ``foxglove.PoseInFrame``       ``/workspace/<stream>`` (m),
+                                                                 ``/camera/<stream>`` (px)
+``/coils/currents``               ``magrun.CoilCurrents``        ``/coils/currents`` (A)
+``/controller/status``            ``magrun.ControllerStatus``    ``/controller/*``
+================================  =============================  ==============================
+
+``<stream>`` is ``actual``, ``tracked``, ``measured``, ``estimated``, ``predicted`` and
+``desired``. Log time is trial time in ns. MCAP metadata records: ``trial`` (protocol,
+method, condition values, seed, index, robot, software versions), ``protocol`` (the protocol
+as JSON), ``workspace`` (boundaries, m, as JSON) and, at the end, ``recorder`` (ticks
+written, dropped, status). The ``.rrd`` also carries ``/errors/*`` series and a blueprint:
+the camera view with paths overlaid, the workspace from above with its boundaries, and time
+series of currents and errors.
+
+The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.loop.Tick`; that
+only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
+files. A full queue drops the tick, counts it, and the count lands in the ``recorder``
+metadata, the manifest and the run summary: never silent. The MCAP writer closes a chunk
+every second of trial time, so a crash loses at most that (``magrun recover`` rebuilds the
+file's index).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import queue
+import threading
+from dataclasses import dataclass, field
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, timestamp_pb2
+from google.protobuf.message import Message
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import register_schema
+from numpy.typing import NDArray
+
+from magrun.loop import Tick
+
+FloatArray = NDArray[np.float64]
+
+POSE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted", "desired")
+TOPICS = (
+    "/camera/image",
+    *(f"/robot/pose/{s}" for s in POSE_STREAMS),
+    "/coils/currents",
+    "/controller/status",
+)
+FRAME_ID = "workspace"
+#: colours of the pose streams in the Rerun views (RGB)
+STREAM_COLORS = {
+    "actual": (230, 60, 60),
+    "tracked": (240, 160, 40),
+    "measured": (160, 80, 220),
+    "estimated": (60, 140, 230),
+    "predicted": (40, 180, 200),
+    "desired": (40, 190, 80),
+}
+#: pose streams drawn as whole paths over the views at the end of a trial
+PATHS = ("actual", "predicted")
+SOFTWARE = ("magrun", "numpy", "casadi", "torch", "rerun-sdk", "mcap", "protobuf")
+
+
+# --------------------------------------------------------------------------------------------
+# protobuf schemas of magrun's own messages (built at import: no generated code to keep)
+
+
+def _magrun_messages() -> tuple[type[Message], type[Message]]:
+    fd = descriptor_pb2.FileDescriptorProto(
+        name="magrun/messages.proto",
+        package="magrun",
+        syntax="proto3",
+        dependency=["google/protobuf/timestamp.proto"],
+    )
+    T = descriptor_pb2.FieldDescriptorProto
+    ts = (".google.protobuf.Timestamp", T.TYPE_MESSAGE)
+
+    def message(name: str, fields: list[tuple[str, Any, int]]) -> None:
+        m = fd.message_type.add(name=name)
+        for number, (fname, ftype, label) in enumerate(fields, start=1):
+            f = m.field.add(name=fname, number=number, label=label)
+            if isinstance(ftype, tuple):
+                f.type_name, f.type = ftype
+            else:
+                f.type = ftype
+
+    one, many = T.LABEL_OPTIONAL, T.LABEL_REPEATED
+    message(
+        "CoilCurrents",
+        [("timestamp", ts, one), ("names", T.TYPE_STRING, many), ("currents", T.TYPE_DOUBLE, many)],
+    )
+    message(
+        "ControllerStatus",
+        [
+            ("timestamp", ts, one),
+            ("method", T.TYPE_STRING, one),
+            ("solve_time", T.TYPE_DOUBLE, one),  # s
+            ("iterations", T.TYPE_UINT32, one),
+            ("success", T.TYPE_BOOL, one),
+            ("fallback", T.TYPE_STRING, one),
+            ("message", T.TYPE_STRING, one),
+            ("compute_time", T.TYPE_DOUBLE, one),  # s, tracking + feedback + controller
+            ("measurement", T.TYPE_BOOL, one),  # whether a fluoroscopy frame arrived
+            ("tracking_lost", T.TYPE_BOOL, one),
+        ],
+    )
+    pool = descriptor_pool.Default()
+    timestamp_pb2.Timestamp  # noqa: B018 - the import registers timestamp.proto in the pool
+    try:
+        pool.FindFileByName(fd.name)
+    except KeyError:
+        pool.Add(fd)
+    return (
+        message_factory.GetMessageClass(pool.FindMessageTypeByName("magrun.CoilCurrents")),
+        message_factory.GetMessageClass(pool.FindMessageTypeByName("magrun.ControllerStatus")),
+    )
+
+
+CoilCurrents, ControllerStatusMsg = _magrun_messages()
+
+
+def _stamp(msg: Any, t_ns: int) -> None:
+    msg.timestamp.seconds, msg.timestamp.nanos = divmod(t_ns, 1_000_000_000)
+
+
+def pose_message(pose: FloatArray, t_ns: int) -> PoseInFrame:
+    """A pose (x, y, θ) as ``foxglove.PoseInFrame``: z = 0, yaw θ about +z as a quaternion."""
+    msg = PoseInFrame(frame_id=FRAME_ID)
+    _stamp(msg, t_ns)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (
+        float(pose[0]),
+        float(pose[1]),
+        0.0,
+    )
+    half = float(pose[2]) / 2
+    msg.pose.orientation.z, msg.pose.orientation.w = math.sin(half), math.cos(half)
+    return msg
+
+
+def yaw_of(qz: float, qw: float) -> float:
+    """θ of a yaw quaternion (the inverse of :func:`pose_message`), in (−π, π]."""
+    return math.atan2(2 * qw * qz, 1 - 2 * qz * qz)
+
+
+def software_versions() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for name in SOFTWARE:
+        try:
+            out[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            out[name] = "absent"
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# the recorder
+
+
+@dataclass
+class RecorderStats:
+    """What a recorder wrote and lost."""
+
+    ticks_logged: int = 0
+    ticks_written: int = 0
+    dropped_ticks: int = 0
+    images: int = 0
+    error: str = ""
+
+
+@dataclass
+class RecordingSetup:
+    """Static facts a recording needs besides its ticks."""
+
+    trial: dict[str, Any]  # the ``trial`` metadata (JSON-able values)
+    channel_names: tuple[str, ...]
+    protocol_json: str = "{}"
+    boundaries: dict[str, FloatArray] = field(default_factory=dict)  # name -> (n, 2), m
+    reference: FloatArray | None = None  # (n, 3) the desired path, for the views
+    camera: Any = None  # magrun.tracking.camera.Camera, for the pixel overlay
+    image_every: int = 1
+    jpeg_quality: int = 90
+    recording_id: str = ""
+
+
+_STOP = object()
+
+
+class TrialRecorder:
+    """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread.
+
+    Use as a context manager, or call :meth:`start` and :meth:`close`::
+
+        with TrialRecorder(base, setup) as rec:
+            run_trial(..., on_tick=rec.log)
+    """
+
+    def __init__(
+        self, base: str | Path, setup: RecordingSetup, queue_size: int = 256, flush_s: float = 1.0
+    ) -> None:
+        self.base = Path(base)
+        self.setup = setup
+        self.stats = RecorderStats()
+        self.status = "ok"
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._flush_ns = int(flush_s * 1e9)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def mcap_path(self) -> Path:
+        return self.base.with_name(self.base.name + ".mcap")
+
+    @property
+    def rrd_path(self) -> Path:
+        return self.base.with_name(self.base.name + ".rrd")
+
+    # ---- loop side ---------------------------------------------------------------------
+
+    def log(self, tick: Tick) -> None:
+        """Queue a tick for writing; never blocks (a full queue drops and counts it)."""
+        self.stats.ticks_logged += 1
+        try:
+            self._queue.put_nowait(tick)
+        except queue.Full:
+            self.stats.dropped_ticks += 1
+
+    # ---- lifecycle ---------------------------------------------------------------------
+
+    def start(self) -> TrialRecorder:
+        self.base.parent.mkdir(parents=True, exist_ok=True)
+        self._mcap_file = self.mcap_path.open("wb")
+        self._mcap = Writer(self._mcap_file, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        self._mcap.start(profile="", library="magrun")
+        self._channels: dict[str, int] = {}
+        self._mcap.add_metadata("trial", {k: _text(v) for k, v in self.setup.trial.items()})
+        self._mcap.add_metadata("protocol", {"json": self.setup.protocol_json})
+        self._mcap.add_metadata(
+            "workspace",
+            {"boundaries": json.dumps({k: v.tolist() for k, v in self.setup.boundaries.items()})},
+        )
+        self._rerun_start()
+        self._last_flush = 0
+        self._thread = threading.Thread(target=self._run, name=f"recorder {self.base.name}")
+        self._thread.start()
+        return self
+
+    def close(self, status: str = "ok") -> RecorderStats:
+        """Write what is queued, the ``recorder`` metadata, and close both files."""
+        if self._thread is None:
+            return self.stats
+        self._queue.put(_STOP)  # blocking: the loop is over, the writer drains the queue
+        self._thread.join()
+        self._thread = None
+        self.status = status if not self.stats.error else "failed"
+        self._mcap.add_metadata(
+            "recorder",
+            {
+                "status": self.status,
+                "ticks_logged": str(self.stats.ticks_logged),
+                "ticks_written": str(self.stats.ticks_written),
+                "dropped_ticks": str(self.stats.dropped_ticks),
+                "images": str(self.stats.images),
+                "error": self.stats.error,
+            },
+        )
+        self._mcap.finish()
+        self._mcap_file.close()
+        self._rec.flush(timeout_sec=60.0)
+        self._rec.disconnect()
+        return self.stats
+
+    def __enter__(self) -> TrialRecorder:
+        return self.start()
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self.close("ok" if exc_type is None else "failed")
+
+    # ---- writer thread -----------------------------------------------------------------
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                if not self.stats.error:
+                    try:
+                        self._rerun_paths()
+                    except Exception as exc:
+                        self.stats.error = f"{type(exc).__name__}: {exc}"
+                return
+            if self.stats.error:
+                continue  # keep draining so the loop never blocks; the error is reported
+            try:
+                self._write(item)
+                self.stats.ticks_written += 1
+            except Exception as exc:  # a writer failure must not kill the trial silently
+                self.stats.error = f"{type(exc).__name__}: {exc}"
+
+    def _channel(self, topic: str, cls: type[Message]) -> int:
+        if topic not in self._channels:
+            schema_id = register_schema(self._mcap, cls)
+            self._channels[topic] = self._mcap.register_channel(
+                topic=topic, message_encoding="protobuf", schema_id=schema_id
+            )
+        return self._channels[topic]
+
+    def _put(self, topic: str, msg: Message, t_ns: int) -> None:
+        self._mcap.add_message(
+            channel_id=self._channel(topic, type(msg)),
+            log_time=t_ns,
+            publish_time=t_ns,
+            data=msg.SerializeToString(),
+        )
+
+    def _write(self, tick: Tick) -> None:
+        t_ns = round(tick.t * 1e9)
+        setup = self.setup
+        poses = {
+            "actual": tick.actual,
+            "tracked": tick.tracked,
+            "measured": tick.measured,
+            "estimated": tick.estimated,
+            "predicted": tick.predicted,
+            "desired": tick.desired,
+        }
+        jpeg = None
+        if tick.frame is not None and setup.image_every and tick.k % setup.image_every == 0:
+            ok, buf = cv2.imencode(
+                ".jpg",
+                cv2.cvtColor(tick.frame, cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, setup.jpeg_quality],
+            )
+            if not ok:
+                raise RuntimeError("JPEG encoding failed")
+            jpeg = buf.tobytes()
+            img = CompressedImage(frame_id="camera", format="jpeg", data=jpeg)
+            _stamp(img, t_ns)
+            self._put("/camera/image", img, t_ns)
+            self.stats.images += 1
+        for name, pose in poses.items():
+            if pose is not None:
+                self._put(f"/robot/pose/{name}", pose_message(pose, t_ns), t_ns)
+        cur = CoilCurrents(names=list(setup.channel_names), currents=tick.currents.tolist())
+        _stamp(cur, t_ns)
+        self._put("/coils/currents", cur, t_ns)
+        s = tick.status
+        st = ControllerStatusMsg(
+            method=str(setup.trial.get("method", "")),
+            solve_time=s.solve_time,
+            iterations=s.iterations,
+            success=s.success,
+            fallback=s.fallback,
+            message=s.message,
+            compute_time=tick.compute_time,
+            measurement=tick.measured is not None,
+            tracking_lost=tick.frame is not None and tick.tracked is None,
+        )
+        _stamp(st, t_ns)
+        self._put("/controller/status", st, t_ns)
+        if t_ns - self._last_flush >= self._flush_ns:
+            self._mcap.flush()  # close the chunk: a crash loses at most flush_s of trial time
+            self._last_flush = t_ns
+        self._rerun_tick(tick, poses, jpeg)
+
+    # ---- Rerun -------------------------------------------------------------------------
+
+    def _rerun_start(self) -> None:
+        import rerun as rr
+
+        setup = self.setup
+        self._rec = rr.RecordingStream(
+            "magrun", recording_id=setup.recording_id or None, send_properties=False
+        )
+        self._rec.save(str(self.rrd_path), default_blueprint=blueprint(setup.camera is not None))
+        rec = self._rec
+        rec.log(
+            "/trial",
+            rr.TextDocument(
+                "\n".join(f"{k}: {_text(v)}" for k, v in setup.trial.items()),
+            ),
+            static=True,
+        )
+        for name, line in setup.boundaries.items():
+            rec.log(
+                f"/workspace/boundaries/{name}",
+                rr.LineStrips2D([line], colors=[(150, 80, 200)], radii=[0.00015]),
+                static=True,
+            )
+        if setup.reference is not None:
+            ref = setup.reference[:, :2]
+            rec.log(
+                "/workspace/reference",
+                rr.LineStrips2D([ref], colors=[(40, 190, 80, 120)], radii=[0.0001]),
+                static=True,
+            )
+            if setup.camera is not None:
+                rec.log(
+                    "/camera/reference",
+                    rr.LineStrips2D(
+                        [setup.camera.to_pixel(ref)], colors=[(40, 190, 80, 160)], radii=[0.5]
+                    ),
+                    static=True,
+                )
+        rec.log(
+            "/coils/currents",
+            rr.SeriesLines(names=list(setup.channel_names)),
+            static=True,
+        )
+        self._paths: dict[str, list[FloatArray]] = {name: [] for name in PATHS}
+
+    def _rerun_paths(self) -> None:
+        """The whole actual and predicted paths, static: drawn over both views at any time."""
+        import rerun as rr
+
+        cam = self.setup.camera
+        for name, points in self._paths.items():
+            if len(points) < 2:
+                continue
+            line = np.stack(points)
+            color = STREAM_COLORS[name]
+            self._rec.log(
+                f"/workspace/paths/{name}",
+                rr.LineStrips2D([line], colors=[color], radii=[0.0001]),
+                static=True,
+            )
+            if cam is not None:
+                self._rec.log(
+                    f"/camera/paths/{name}",
+                    rr.LineStrips2D([cam.to_pixel(line)], colors=[color], radii=[0.4]),
+                    static=True,
+                )
+
+    def _rerun_tick(
+        self, tick: Tick, poses: dict[str, FloatArray | None], jpeg: bytes | None
+    ) -> None:
+        import rerun as rr
+
+        rec = self._rec
+        rec.set_time("t", duration=tick.t)
+        if jpeg is not None:
+            rec.log("/camera/image", rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+        cam = self.setup.camera
+        for name in ("actual", "tracked", "measured", "estimated", "predicted"):
+            pose = poses[name]
+            if pose is None:
+                continue
+            color = STREAM_COLORS[name]
+            rec.log(f"/workspace/{name}", rr.Points2D([pose[:2]], radii=[0.0002], colors=[color]))
+            if cam is not None and name in ("actual", "predicted", "measured"):
+                px = cam.to_pixel(pose[None, :2])
+                rec.log(f"/camera/{name}", rr.Points2D(px, radii=[1.2], colors=[color]))
+        for name in PATHS:
+            point = poses[name]
+            if point is not None:
+                self._paths[name].append(np.asarray(point[:2], dtype=np.float64))
+        rec.log("/coils/currents", rr.Scalars(tick.currents))
+        err = tick.actual - tick.desired
+        rec.log("/errors/position_mm", rr.Scalars([math.hypot(err[0], err[1]) * 1e3]))
+        wrapped = (err[2] + math.pi) % (2 * math.pi) - math.pi
+        rec.log("/errors/orientation_deg", rr.Scalars([abs(math.degrees(wrapped))]))
+        rec.log("/controller/compute_ms", rr.Scalars([tick.compute_time * 1e3]))
+
+
+def blueprint(with_camera: bool) -> Any:
+    """The ``.rrd``'s layout: camera with paths, workspace from above, currents and errors."""
+    import rerun.blueprint as rrb
+
+    views: list[Any] = []
+    if with_camera:
+        views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)"))
+    views.append(rrb.Spatial2DView(origin="/workspace", name="workspace from above (m)"))
+    series = rrb.Vertical(
+        rrb.TimeSeriesView(origin="/coils/currents", name="coil currents (A)"),
+        rrb.TimeSeriesView(origin="/errors", name="errors (mm, deg)"),
+        rrb.TimeSeriesView(origin="/controller", name="compute time (ms)"),
+    )
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)

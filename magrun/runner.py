@@ -1,0 +1,405 @@
+"""Run a protocol: expand it into trials, run each on a rig, record it, keep a manifest.
+
+    >>> from magrun.protocol import load_protocol
+    >>> from magrun.runner import run_protocol
+    >>> manifest = run_protocol(load_protocol("protocols/rate.yaml"), "recordings", jobs=2)
+
+One trial (:func:`execute_trial`) builds everything from the :class:`~magrun.protocol.Trial`
+alone: the rig (seeded), the controller, the camera tracker, the fluoroscopy mimic (seeded),
+and a :class:`~magrun.recording.TrialRecorder`; it then runs :func:`magrun.loop.run_trial`.
+Because a trial depends on nothing else, trials run in any order, in any process: a local
+process pool (``jobs``), or Ray on a cluster (:func:`ray_executor`), give the same recordings
+(up to the wall-clock fields: solve and compute times, and with ``charge_compute_time`` the
+plant's timing too).
+
+Output, per the recording contract::
+
+    OUT/<protocol>/manifest.json
+    OUT/<protocol>/<condition slug>/trial-<k>.mcap
+    OUT/<protocol>/<condition slug>/trial-<k>.rrd
+
+The manifest is rewritten atomically after every trial: each entry's ``status`` is
+``pending``, ``ok`` or ``failed`` (with the error), so an interrupted campaign says exactly
+what it holds.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import datetime
+import json
+import math
+import multiprocessing
+import shutil
+import time
+import traceback
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from magrun.atomic import write_text
+from magrun.protocol import Protocol, Trial
+
+RIGS = ("sim", "hardware")
+ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
+
+
+class RunError(RuntimeError):
+    """A run that cannot start (bad output folder, unavailable rig); nothing was written."""
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What a trial runs in: reference path, walls, boundaries (SI)."""
+
+    reference: Any  # magrun.scene.Trajectory
+    walls: Any  # magrun.scene.Walls or None (the rig's default box)
+    boundaries: dict[str, Any]
+    critical: str | None
+    phantom: Any  # magrun.phantom.Phantom or None
+
+
+def build_scene(protocol: Protocol) -> Scene:
+    """The reference trajectory and walls a protocol describes."""
+    from magrun.phantom import load_phantom
+    from magrun.scene import Walls, out_and_back, s_trajectory
+
+    phantom = None
+    ws = protocol.workspace
+    if ws.kind == "spine_phantom":
+        phantom = load_phantom(ws.phantom)
+    traj = protocol.trajectory
+    if traj.kind == "s_curve":
+        reference = s_trajectory(size=traj.size_mm * 1e-3, speed=traj.speed_mm_s * 1e-3)
+    else:
+        if traj.path == "phantom":
+            if phantom is None or phantom.path is None:
+                raise ValueError("trajectory.path 'phantom': the phantom file has no path")
+            points = phantom.path
+        else:
+            points = np.asarray(traj.path, dtype=np.float64) * 1e-3
+        reference = out_and_back(points, traj.speed_mm_s * 1e-3, traj.hold_s, traj.flip_s)
+    if phantom is not None:
+        from magrun.field.coils import CoilSystem
+
+        box = Walls.box(CoilSystem.load().workspace_half_width)
+        return Scene(
+            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, phantom
+        )
+    return Scene(reference, None, {}, None, None)
+
+
+def _control_config(trial: Trial) -> Any:
+    from magrun.control.methods import ControlConfig
+    from magrun.control.nmpc import NMPCConfig
+    from magrun.control.two_layer import LinearMPCConfig
+    from magrun.estimation import KalmanConfig
+
+    c = trial.protocol.controller
+    k = c.kalman
+    if k.measurement_sigma_mm == "condition":
+        sigma_mm = max(float(trial.condition.get("noise_sigma_mm") or 0.0), k.tracker_sigma_mm)
+    else:
+        sigma_mm = k.measurement_sigma_mm
+    sigma_deg = max(k.measurement_sigma_deg, float(trial.condition.get("noise_sigma_deg") or 0.0))
+    return ControlConfig(
+        dt=1.0 / c.rate_hz,
+        nmpc=NMPCConfig(horizon=c.horizon),
+        linear_mpc=LinearMPCConfig(horizon=c.horizon),
+        kalman=KalmanConfig(
+            measurement_position=sigma_mm * 1e-3,
+            measurement_angle=math.radians(sigma_deg),
+            process_position=k.process_sigma_mm * 1e-3,
+            process_angle=math.radians(k.process_sigma_deg),
+        ),
+    )
+
+
+def _make_rig(kind: str, robot: str, walls: Any, seed: int, camera: bool) -> Any:
+    if kind == "hardware":
+        raise RunError(
+            "the hardware rig has no driver in this build yet; run with --rig sim "
+            "(the Rig interface in magrun/rigs/base.py is what a driver implements)"
+        )
+    from magrun.rigs.sim import SimRig
+    from magrun.tracking.camera import CameraConfig
+
+    return SimRig.default(
+        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None
+    )
+
+
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """One torch thread per trial: results then do not depend on the thread count."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def execute_trial(
+    trial: Trial, out: str | Path, rig: str = "sim", progress: ProgressFn | None = None
+) -> dict[str, Any]:
+    """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
+    from magrun.control.methods import make_controller
+    from magrun.loop import run_trial
+    from magrun.recording import RecordingSetup, TrialRecorder, software_versions
+    from magrun.robot import load_robot
+    from magrun.tracking.fluoroscopy import FluoroscopyMimic
+    from magrun.tracking.tracker import Tracker
+
+    entry = manifest_entry(trial)
+    t0 = time.perf_counter()
+    base = Path(out) / trial.relpath
+    recorder = None
+    try:
+        protocol = trial.protocol
+        scene = build_scene(protocol)
+        robot = load_robot(protocol.robot)
+        cfg = _control_config(trial)
+        controller = make_controller(trial.method, robot, cfg)
+        the_rig = _make_rig(rig, protocol.robot, scene.walls, trial.seed, protocol.feedback.camera)
+        tracker = Tracker.default(the_rig.camera, the_rig.nominal_robot) if the_rig.camera else None
+        rate = trial.condition.get("tracking_rate_hz") or math.inf
+        mimic = FluoroscopyMimic(
+            rate,
+            float(trial.condition.get("noise_sigma_mm") or 0.0) * 1e-3,
+            math.radians(float(trial.condition.get("noise_sigma_deg") or 0.0)),
+            seed=trial.seed,
+        )
+        meta = {
+            **trial.describe(),
+            "rig": rig,
+            "robot": protocol.robot,
+            "robot_length_m": robot.length,
+            "robot_diameter_m": robot.diameter,
+            "control_rate_hz": protocol.controller.rate_hz,
+            "charge_compute_time": protocol.controller.charge_compute_time,
+            "feedback": "camera" if tracker is not None else "truth",
+            "critical_boundary": scene.critical or "",
+            "software": software_versions(),
+        }
+        setup = RecordingSetup(
+            trial=meta,
+            channel_names=tuple(the_rig.channel_names),
+            protocol_json=protocol.model_dump_json(),
+            boundaries=scene.boundaries,
+            reference=scene.reference.poses,
+            camera=the_rig.camera,
+            image_every=protocol.recording.image_every,
+            jpeg_quality=protocol.recording.jpeg_quality,
+            recording_id=f"{trial.relpath}@{trial.seed}",
+        )
+        recorder = TrialRecorder(base, setup).start()
+        tick_progress = (
+            (lambda done, total: progress(trial.relpath, done, total)) if progress else None
+        )
+        with _torch_threads(1):
+            log = run_trial(
+                controller, the_rig, scene.reference, feedback=mimic,
+                horizon=protocol.controller.horizon,
+                duration=protocol.trial_duration(trial.quick), progress=tick_progress,
+                tracker=tracker, on_tick=recorder.log,
+                charge_compute=protocol.controller.charge_compute_time and rig == "sim",
+            )  # fmt: skip
+        stats = recorder.close("ok")
+        recorder = None
+        entry.update(
+            status="ok" if not stats.error else "failed",
+            error=stats.error,
+            ticks=len(log.t),
+            dropped_ticks=stats.dropped_ticks,
+            rms_position_mm=log.rms_position_mm,
+            rms_orientation_deg=log.rms_orientation_deg,
+            overruns=int(np.count_nonzero(log.compute_time > controller.dt)),
+            median_compute_ms=float(np.median(log.compute_time) * 1e3),
+        )
+    except Exception as exc:
+        entry.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+        entry["traceback"] = traceback.format_exc(limit=8)
+        if recorder is not None:
+            recorder.close("failed")
+    entry["wall_s"] = time.perf_counter() - t0
+    return entry
+
+
+def manifest_entry(trial: Trial) -> dict[str, Any]:
+    return {
+        "path": trial.relpath.split("/", 1)[1],
+        "mcap": trial.relpath.split("/", 1)[1] + ".mcap",
+        "rrd": trial.relpath.split("/", 1)[1] + ".rrd",
+        "protocol": trial.protocol.name,
+        "method": trial.method,
+        "conditions": trial.condition,
+        "trial": trial.index,
+        "seed": trial.seed,
+        "status": "pending",
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# executors: each yields manifest entries as trials finish
+
+
+Executor = Callable[[list[Trial], Path, str, ProgressFn | None], Iterable[dict[str, Any]]]
+
+
+def _worker_init() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _pool_progress(q: Any) -> ProgressFn:
+    def send(relpath: str, done: int, total: int) -> None:
+        if done == total or done % 25 == 0:
+            q.put((relpath, done, total))
+
+    return send
+
+
+def _run_in_worker(trial: Trial, out: str, rig: str, q: Any) -> dict[str, Any]:
+    return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None)
+
+
+def local_executor(jobs: int = 1) -> Executor:
+    """Run trials in this process (``jobs`` = 1) or a pool of ``jobs`` processes."""
+
+    def run(
+        trials: list[Trial], out: Path, rig: str, progress: ProgressFn | None
+    ) -> Iterator[dict[str, Any]]:
+        if jobs <= 1:
+            for trial in trials:
+                yield execute_trial(trial, out, rig, progress)
+            return
+        ctx = multiprocessing.get_context("spawn")  # no forked torch / casadi state
+        with ctx.Manager() as manager:
+            q = manager.Queue() if progress is not None else None
+            with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
+                pending = {pool.submit(_run_in_worker, t, str(out), rig, q) for t in trials}
+                while pending:
+                    done, pending = cf.wait(pending, timeout=0.2)
+                    while q is not None and not q.empty():
+                        assert progress is not None
+                        progress(*q.get_nowait())
+                    for fut in done:
+                        yield fut.result()
+
+    return run
+
+
+def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Executor:
+    """Run trials as Ray tasks (``pip install magrun[ray]``), one CPU each.
+
+    ``address`` is a running cluster's (``ray://host:10001`` or ``auto``); ``None`` starts a
+    local Ray instance with ``num_cpus`` CPUs. The output folder must be shared storage that
+    every node writes to.
+    """
+    try:
+        import ray
+    except ImportError as exc:
+        raise RunError("the Ray executor needs Ray: pip install 'magrun[ray]'") from exc
+
+    def run(
+        trials: list[Trial], out: Path, rig: str, progress: ProgressFn | None
+    ) -> Iterator[dict[str, Any]]:
+        started = not ray.is_initialized()
+        if started:
+            ray.init(
+                address=address, num_cpus=num_cpus, include_dashboard=False, log_to_driver=False
+            )
+        try:
+            task = ray.remote(num_cpus=1)(_run_in_worker)
+            refs = [task.remote(t, str(out.resolve()), rig, None) for t in trials]
+            while refs:
+                ready, refs = ray.wait(refs, num_returns=1)
+                yield ray.get(ready[0])
+        finally:
+            if started:
+                ray.shutdown()
+
+    return run
+
+
+# --------------------------------------------------------------------------------------------
+# a protocol run
+
+
+def run_protocol(
+    protocol: Protocol,
+    out: str | Path = "recordings",
+    quick: bool = False,
+    seed: int | None = None,
+    jobs: int = 1,
+    rig: str = "sim",
+    executor: Executor | None = None,
+    overwrite: bool = False,
+    protocol_file: str | None = None,
+    on_trial: Callable[[dict[str, Any]], None] | None = None,
+    progress: ProgressFn | None = None,
+) -> dict[str, Any]:
+    """Run every trial of ``protocol``; returns the manifest (also written to disk).
+
+    Refuses (:class:`RunError`) to write into an existing ``OUT/<protocol>`` folder unless
+    ``overwrite``, which deletes it first: recordings are never silently mixed or replaced.
+    """
+    if rig not in RIGS:
+        raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
+    if rig == "hardware":
+        _make_rig(rig, protocol.robot, None, 0, False)  # fails early and clearly
+    out = Path(out)
+    folder = out / protocol.name
+    if folder.exists() and any(folder.iterdir()):
+        if not overwrite:
+            raise RunError(
+                f"{folder} already holds recordings; choose another --out or pass --overwrite"
+            )
+        shutil.rmtree(folder)
+    trials = protocol.expand(quick=quick, seed=seed)
+    from magrun.recording import software_versions
+
+    manifest: dict[str, Any] = {
+        "protocol": protocol.name,
+        "protocol_file": protocol_file,
+        "description": protocol.description,
+        "seed": protocol.seed if seed is None else seed,
+        "quick": quick,
+        "rig": rig,
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "software": software_versions(),
+        "trials": [manifest_entry(t) for t in trials],
+    }
+    path = folder / "manifest.json"
+    index = {e["path"]: i for i, e in enumerate(manifest["trials"])}
+    write_manifest(path, manifest)
+    run = executor or local_executor(jobs)
+    for entry in run(trials, out, rig, progress):
+        manifest["trials"][index[entry["path"]]] = entry
+        write_manifest(path, manifest)
+        if on_trial is not None:
+            on_trial(entry)
+    return manifest
+
+
+def write_manifest(path: Path, manifest: dict[str, Any]) -> None:
+    write_text(path, json.dumps(_finite(manifest), indent=2) + "\n")
+
+
+def _finite(value: Any) -> Any:
+    """NaN and infinities as JSON null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value

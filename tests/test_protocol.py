@@ -1,0 +1,210 @@
+"""Protocol schema: the shipped protocols, the bad-protocol corpus, expansion, JSON Schema."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+import yaml
+from click.testing import CliRunner
+
+from magrun.cli import cli
+from magrun.phantom import load_phantom
+from magrun.protocol import Protocol, condition_slug, json_schema, load_protocol
+from magrun.scene import out_and_back
+from magrun.yamlio import YamlModelError
+
+ROOT = Path(__file__).resolve().parents[1]
+PROTOCOLS = sorted((ROOT / "protocols").glob("*.yaml"))
+BAD = sorted((ROOT / "tests" / "data" / "bad_protocols").glob("*.yaml"))
+PAPER = {"prediction", "rate", "noise", "rate_under_noise", "spine"}
+
+
+def test_the_five_paper_protocols_are_shipped() -> None:
+    assert {p.stem for p in PROTOCOLS} == PAPER
+
+
+@pytest.mark.parametrize("path", PROTOCOLS, ids=lambda p: p.stem)
+def test_shipped_protocol_validates_and_matches_the_json_schema(path: Path) -> None:
+    protocol = load_protocol(path)
+    assert protocol.name == path.stem
+    assert protocol.trials == 3  # the paper's three trials per condition
+    jsonschema.validate(yaml.safe_load(path.read_text()), json.loads(json_schema()))
+    full, quick = protocol.expand(), protocol.expand(quick=True)
+    n_conditions = math.prod(len(v) for _, v in protocol.sweep.items())
+    assert len(full) == len(protocol.methods) * n_conditions * protocol.trials
+    assert 1 <= len(quick) < len(full) or len(full) == 3
+    assert all(t.index == 0 for t in quick)
+    assert protocol.trial_duration(quick=True) <= protocol.quick.duration_s
+
+
+def test_validate_command_accepts_all_shipped_protocols() -> None:
+    result = CliRunner().invoke(cli, ["validate", *map(str, PROTOCOLS)])
+    assert result.exit_code == 0, result.output
+    assert result.output.count(": ok (") == len(PROTOCOLS)
+
+
+def test_the_corpus_of_bad_protocols_is_large_enough() -> None:
+    assert len(BAD) >= 20
+
+
+@pytest.mark.parametrize("path", BAD, ids=lambda p: p.stem)
+def test_bad_protocol_is_rejected_with_file_line_and_field(path: Path) -> None:
+    # each file's first line says where the problem must be reported: "# expect: LINE: FIELD"
+    expected = path.read_text().splitlines()[0].removeprefix("# expect: ")
+    result = CliRunner().invoke(cli, ["validate", str(path)])
+    assert result.exit_code == 2
+    assert "Traceback" not in result.output
+    assert isinstance(result.exception, SystemExit)
+    assert f"{path}:{expected}" in result.output
+
+
+def test_run_rejects_a_bad_protocol_before_writing_anything(tmp_path: Path) -> None:
+    result = CliRunner().invoke(cli, ["run", str(BAD[0]), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2
+    assert not (tmp_path / "out").exists()
+
+
+def test_validate_reports_every_problem_of_every_file() -> None:
+    result = CliRunner().invoke(cli, ["validate", str(BAD[0]), str(BAD[1]), str(PROTOCOLS[0])])
+    assert result.exit_code == 2
+    assert str(BAD[0]) in result.output
+    assert str(BAD[1]) in result.output
+
+
+def _protocol(**changes: object) -> Protocol:
+    doc: dict[str, object] = {
+        "name": "t",
+        "trajectory": {"kind": "s_curve"},
+        "methods": ["proposed", "baseline2", "baseline3"],
+        "sweep": {"tracking_rate_hz": [3, 10], "noise_sigma_mm": [0, 1, 2]},
+        "trials": 2,
+        "seed": 11,
+    }
+    doc.update(changes)
+    return Protocol.model_validate(doc)
+
+
+def test_expansion_covers_method_by_condition_by_repeat_in_a_fixed_order() -> None:
+    p = _protocol()
+    trials = p.expand()
+    assert len(trials) == 3 * (2 * 3) * 2
+    combos = list(itertools.product([3.0, 10.0], [0.0, 1.0, 2.0]))
+    got = [(t.condition["tracking_rate_hz"], t.condition["noise_sigma_mm"]) for t in trials]
+    assert got == [c for c in combos for _ in range(3 * 2)]
+    assert [t.relpath for t in trials] == [t.relpath for t in p.expand()]
+    assert len({t.relpath for t in trials}) == len(trials)
+    assert trials[0].relpath == "t/proposed_rate-3hz_sigma-0mm/trial-0"
+
+
+def test_methods_share_seeds_within_a_condition_and_repeat_and_nowhere_else() -> None:
+    trials = _protocol().expand()
+    by_key: dict[tuple[object, ...], set[int]] = {}
+    for t in trials:
+        key = (t.condition["tracking_rate_hz"], t.condition["noise_sigma_mm"], t.index)
+        by_key.setdefault(key, set()).add(t.seed)
+    assert all(len(seeds) == 1 for seeds in by_key.values())  # paired across methods
+    assert len({next(iter(s)) for s in by_key.values()}) == len(by_key)  # distinct otherwise
+    other = _protocol().expand(seed=12)
+    assert {t.seed for t in other}.isdisjoint({t.seed for t in trials})
+
+
+def test_quick_defaults_to_the_extreme_values_of_each_sweep_and_one_trial() -> None:
+    quick = _protocol().expand(quick=True)
+    rates = sorted({t.condition["tracking_rate_hz"] for t in quick})
+    sigmas = sorted({t.condition["noise_sigma_mm"] for t in quick})
+    assert rates == [3.0, 10.0]
+    assert sigmas == [0.0, 2.0]
+    assert len(quick) == 3 * 2 * 2
+
+
+def test_fixed_conditions_reach_every_trial_and_defaults_are_stated() -> None:
+    p = _protocol(sweep={"tracking_rate_hz": [3]}, conditions={"noise_sigma_mm": 2.0})
+    (t, *_) = p.expand()
+    assert t.condition == {"tracking_rate_hz": 3.0, "noise_sigma_mm": 2.0, "noise_sigma_deg": 0.0}
+
+
+def test_condition_slug_formats_values_with_units() -> None:
+    assert condition_slug("baseline1", {"tracking_rate_hz": 25.5, "noise_sigma_mm": 0.5}) == (
+        "baseline1_rate-25.5hz_sigma-0.5mm"
+    )
+    assert condition_slug("proposed", {}) == "proposed"
+
+
+def test_protocol_errors_raise_yaml_model_error_naming_the_file(tmp_path: Path) -> None:
+    bad = tmp_path / "p.yaml"
+    bad.write_text("name: x\ntrajectory: {kind: s_curve}\nmethods: [proposed]\ntrials: -1\n")
+    with pytest.raises(YamlModelError, match=r"p\.yaml:4: trials"):
+        load_protocol(bad)
+
+
+# ---- the spine phantom ------------------------------------------------------------------
+
+
+PHANTOM = ROOT / "protocols" / "phantoms" / "spine_l3l4.yaml"
+
+
+def test_phantom_outline_closes_and_contains_its_path() -> None:
+    phantom = load_phantom(PHANTOM)
+    assert phantom.critical == "anterior"
+    assert phantom.path is not None
+    assert all(phantom.contains(p) for p in phantom.path)
+    assert not phantom.contains([-6e-3, 0.0])  # the dural sac, inside the U
+    assert not phantom.contains([0.0, 0.03])
+
+
+def test_phantom_channel_is_5_mm_wide() -> None:
+    phantom = load_phantom(PHANTOM)
+    c = np.array([-6e-3, 0.0])
+    inner = np.hypot(*(phantom.boundaries["anterior"] - c).T)
+    outer = np.hypot(*(phantom.boundaries["posterior"] - c).T)
+    np.testing.assert_allclose(outer.mean() - inner.mean(), 5e-3, atol=1e-9)
+
+
+def test_clearance_to_the_anterior_arc_matches_geometry() -> None:
+    # a capsule tangent to the channel at angle φ, its centre at radius ρ around the sac's
+    # centre c: its nearest points to the inner arc (radius 10.5 mm) are along its flat side,
+    # so the clearance is min over the axis segment of |p − c| − 10.5 mm − r.
+    phantom = load_phantom(PHANTOM)
+    c = np.array([-6e-3, 0.0])
+    length, diameter = 7.4e-3, 2.8e-3
+    for phi, rho in [(-0.5, 13.4e-3), (0.3, 12.5e-3), (1.0, 14.0e-3)]:
+        centre = c + rho * np.array([np.cos(phi), np.sin(phi)])
+        theta = phi + np.pi / 2
+        half = (length - diameter) / 2
+        axis = half * np.array([np.cos(theta), np.sin(theta)])
+        # distance from c to the axis segment: the foot of the perpendicular is the centre
+        expected = rho - 10.5e-3 - diameter / 2
+        assert np.hypot(*(centre + axis - c)) > rho  # the centre is the closest point
+        got = phantom.clearance([*centre, theta], length, diameter)
+        # the 0.25 mm chords of the arc sit inside the circle by at most 0.25²/(8·10.5) mm
+        assert got == pytest.approx(expected, abs=1e-6)
+
+
+def test_phantom_with_a_gap_is_rejected(tmp_path: Path) -> None:
+    text = PHANTOM.read_text().replace("[-9.591212, -9.866773]", "[-9.0, -9.866773]")
+    bad = tmp_path / "gap.yaml"
+    bad.write_text(text)
+    with pytest.raises(YamlModelError, match="must close the outline"):
+        load_phantom(bad)
+
+
+def test_out_and_back_goes_holds_turns_and_returns() -> None:
+    path = np.array([[0.0, 0.0], [0.01, 0.0], [0.01, 0.01]])
+    traj = out_and_back(path, speed=0.002, hold=4.0, flip=2.0)
+    length = 0.02
+    assert traj.duration == pytest.approx(2 * length / 0.002 + 4.0 + 2.0)
+    t_far = length / 0.002
+    np.testing.assert_allclose(traj.pose(t_far + 2.0), [0.01, 0.01, np.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(traj.pose(t_far + 4.0 + 1.0)[2], np.pi, atol=1e-12)  # mid-turn
+    end = traj.pose(traj.duration)
+    np.testing.assert_allclose(end[:2], [0.0, 0.0], atol=1e-12)
+    # turned round at the far end (π/2 + π), then home along the first leg, heading west (π)
+    assert end[2] == pytest.approx(np.pi)
+    assert traj.pose(t_far + 6.0 + 1.0)[2] == pytest.approx(3 * np.pi / 2)
+    assert np.all(np.diff(traj.t) > 0)

@@ -1,0 +1,320 @@
+"""The runner and the recordings: files, topics, counts, determinism, timing, drops."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from google.protobuf.json_format import MessageToDict
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from magrun.cli import cli
+from magrun.control.methods import make_controller
+from magrun.loop import Tick, run_trial
+from magrun.protocol import load_protocol
+from magrun.recording import TOPICS, RecordingSetup, TrialRecorder, yaw_of
+from magrun.rigs.sim import SimRig
+from magrun.runner import local_executor, ray_executor, run_protocol
+from magrun.scene import s_trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
+TIMING_FIELDS = {"solveTime", "computeTime"}  # wall-clock fields, different on every run
+
+
+def read_mcap(path: Path) -> tuple[dict[str, int], list[tuple[str, int, dict[str, Any]]], dict]:
+    """Topic counts (from the summary), decoded messages minus timing, metadata records."""
+    with path.open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None
+        assert summary.statistics is not None
+        counts = {
+            ch.topic: summary.statistics.channel_message_counts.get(cid, 0)
+            for cid, ch in summary.channels.items()
+        }
+        messages = []
+        for _schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
+            d = MessageToDict(decoded)
+            for key in TIMING_FIELDS:
+                d.pop(key, None)
+            messages.append((channel.topic, message.log_time, d))
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    return counts, messages, metadata
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, Any]]:
+    out = tmp_path_factory.mktemp("rec")
+    manifest = run_protocol(load_protocol(TINY), out, jobs=1)
+    return out, manifest
+
+
+def test_manifest_lists_every_trial_with_its_files_and_conditions(tiny_run: Any) -> None:
+    out, manifest = tiny_run
+    on_disk = json.loads((out / "tiny" / "manifest.json").read_text())
+    assert on_disk == json.loads(json.dumps(manifest))
+    entries = manifest["trials"]
+    assert len(entries) == 2 * 2
+    assert {e["status"] for e in entries} == {"ok"}
+    for e in entries:
+        assert (out / "tiny" / e["mcap"]).stat().st_size > 0
+        assert (out / "tiny" / e["rrd"]).stat().st_size > 0
+        assert e["dropped_ticks"] == 0
+        assert e["conditions"]["noise_sigma_mm"] == 1.0
+    assert {e["path"] for e in entries} == {
+        f"{m}_rate-{r}hz/trial-0" for m in ("baseline3", "baseline2") for r in ("5", "25.5")
+    }
+
+
+def test_mcap_has_the_contract_topics_and_counts(tiny_run: Any) -> None:
+    out, manifest = tiny_run
+    dt = 1 / 25.5
+    n = math.floor(1.0 / dt + 1e-9) + 1  # ticks in a 1 s trial, t = 0 included
+    for e in manifest["trials"]:
+        counts, messages, meta = read_mcap(out / "tiny" / e["mcap"])
+        rate = e["conditions"]["tracking_rate_hz"]
+        # fluoroscopy frames are due at k / rate, up to the last tick at (n - 1) dt
+        frames = math.floor((n - 1) * dt * rate + 1e-9) + 1
+        assert set(counts) == set(TOPICS)
+        expected = dict.fromkeys(TOPICS, n)
+        expected["/robot/pose/measured"] = frames
+        expected["/robot/pose/predicted"] = n - 1  # no prediction of the first tick
+        assert counts == expected
+        assert e["ticks"] == n
+        trial = meta["trial"]
+        assert trial["method"] == e["method"]
+        assert json.loads(trial["seed"]) == e["seed"]
+        assert json.loads(trial["tracking_rate_hz"]) == rate
+        assert meta["recorder"]["dropped_ticks"] == "0"
+        assert meta["recorder"]["status"] == "ok"
+        assert json.loads(meta["protocol"]["json"])["name"] == "tiny"
+        times = [t for topic, t, _ in messages if topic == "/robot/pose/actual"]
+        assert times[0] == 0
+        np.testing.assert_allclose(np.diff(times) * 1e-9, dt, atol=1e-6)
+
+
+def test_poses_round_trip_through_foxglove_pose_in_frame(tiny_run: Any) -> None:
+    out, manifest = tiny_run
+    _, messages, _ = read_mcap(out / "tiny" / manifest["trials"][0]["mcap"])
+    desired = [d for topic, _, d in messages if topic == "/robot/pose/desired"]
+    ref = s_trajectory()
+    for k in (0, 10, 20):
+        d = desired[k]
+        assert d["frameId"] == "workspace"
+        p, q = d["pose"]["position"], d["pose"]["orientation"]
+        want = ref.pose(k / 25.5)
+        assert p["x"] == pytest.approx(want[0], abs=1e-12)
+        assert p["y"] == pytest.approx(want[1], abs=1e-12)
+        assert "z" not in p  # proto3 leaves the 0 out
+        theta = yaw_of(q.get("z", 0.0), q.get("w", 0.0))
+        assert math.cos(theta - want[2]) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_rrd_reads_back_with_its_entities_and_passes_rerun_verify(tiny_run: Any) -> None:
+    from rerun.chunk import RrdReader
+
+    out, manifest = tiny_run
+    path = out / "tiny" / manifest["trials"][0]["rrd"]
+    entities = {str(chunk.entity_path) for chunk in RrdReader(path).stream()}
+    for entity in (
+        "/camera/image", "/camera/actual", "/camera/paths/actual", "/workspace/actual",
+        "/workspace/paths/predicted", "/coils/currents", "/errors/position_mm",
+    ):  # fmt: skip
+        assert entity in entities
+    rerun = Path(sys.executable).with_name("rerun")
+    done = subprocess.run([str(rerun), "rrd", "verify", str(path)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
+def test_rerun_decodes_the_mcap_natively(tiny_run: Any) -> None:
+    from rerun.chunk import McapReader
+
+    out, manifest = tiny_run
+    reader = McapReader(out / "tiny" / manifest["trials"][0]["mcap"])
+    entities = {str(chunk.entity_path) for chunk in reader.stream()}
+    assert {"/robot/pose/actual", "/camera/image", "/coils/currents"} <= entities
+
+
+def test_same_seed_gives_the_same_messages_whatever_the_job_count(
+    tiny_run: Any, tmp_path: Path
+) -> None:
+    out1, manifest = tiny_run
+    run_protocol(load_protocol(TINY), tmp_path, executor=local_executor(2))
+    for e in manifest["trials"]:
+        _, a, _ = read_mcap(out1 / "tiny" / e["mcap"])
+        _, b, _ = read_mcap(tmp_path / "tiny" / e["mcap"])
+        assert a == b
+
+
+def test_ray_executor_runs_the_same_trials_on_a_local_ray_instance(
+    tiny_run: Any, tmp_path: Path
+) -> None:
+    pytest.importorskip("ray")
+    out1, manifest = tiny_run
+    ray_manifest = run_protocol(load_protocol(TINY), tmp_path, executor=ray_executor(num_cpus=2))
+    assert {e["status"] for e in ray_manifest["trials"]} == {"ok"}
+    e = manifest["trials"][-1]
+    assert read_mcap(out1 / "tiny" / e["mcap"])[1] == read_mcap(tmp_path / "tiny" / e["mcap"])[1]
+
+
+def test_run_refuses_to_overwrite_recordings(tiny_run: Any) -> None:
+    out, _ = tiny_run
+    result = CliRunner().invoke(cli, ["run", str(TINY), "--out", str(out)])
+    assert result.exit_code == 2
+    assert "--overwrite" in result.output
+
+
+def test_view_save_converts_an_mcap_to_a_verified_rrd(tiny_run: Any, tmp_path: Path) -> None:
+    out, manifest = tiny_run
+    target = tmp_path / "converted.rrd"
+    src = out / "tiny" / manifest["trials"][0]["mcap"]
+    result = CliRunner().invoke(cli, ["view", str(src), "--save", str(target)])
+    assert result.exit_code == 0, result.output
+    rerun = Path(sys.executable).with_name("rerun")
+    assert subprocess.run([str(rerun), "rrd", "verify", str(target)], check=False).returncode == 0
+
+
+def test_view_rejects_other_files(tmp_path: Path) -> None:
+    other = tmp_path / "x.csv"
+    other.write_text("a\n")
+    result = CliRunner().invoke(cli, ["view", str(other)])
+    assert result.exit_code == 2
+    assert "not a recording" in result.output
+
+
+def test_hardware_rig_is_refused_before_anything_is_written(tmp_path: Path) -> None:
+    args = ["run", str(TINY), "--out", str(tmp_path), "--rig", "hardware"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2
+    assert "hardware rig" in result.output
+    assert not any(tmp_path.iterdir())
+
+
+def test_protocol_schema_command_prints_json() -> None:
+    result = CliRunner().invoke(cli, ["protocol", "schema"])
+    assert result.exit_code == 0
+    schema = json.loads(result.output)
+    assert schema["additionalProperties"] is False
+    assert "sweep" in schema["properties"]
+
+
+# ---- the recorder --------------------------------------------------------------------------
+
+
+def _tick(k: int) -> Tick:
+    from magrun.control.base import ControllerStatus
+
+    pose = np.array([1e-3 * k, 0.0, 0.1])
+    return Tick(
+        k=k, t=k * 0.04, actual=pose, tracked=None, measured=None, estimated=pose,
+        predicted=None, desired=pose, currents=np.zeros(2), status=ControllerStatus(0.001),
+        compute_time=0.001,
+    )  # fmt: skip
+
+
+def test_a_full_queue_drops_ticks_counts_them_and_never_blocks(tmp_path: Path) -> None:
+    setup = RecordingSetup(trial={"method": "x"}, channel_names=("a", "b"))
+    rec = TrialRecorder(tmp_path / "trial-0", setup, queue_size=2)
+    entered, release = threading.Event(), threading.Event()
+    original = rec._write
+
+    def slow_write(tick: Tick) -> None:
+        entered.set()
+        release.wait(timeout=30)
+        original(tick)
+
+    rec._write = slow_write  # type: ignore[method-assign]
+    rec.start()
+    rec.log(_tick(0))
+    assert entered.wait(timeout=30)  # the writer holds tick 0 ...
+    for k in range(1, 10):
+        rec.log(_tick(k))  # ... the queue takes 2 more: 7 are dropped
+    release.set()
+    stats = rec.close()
+    assert stats.ticks_logged == 10
+    assert stats.dropped_ticks == 7
+    assert stats.ticks_written == 3
+    counts, _, meta = read_mcap(rec.mcap_path)
+    assert counts["/robot/pose/actual"] == 3
+    assert meta["recorder"]["dropped_ticks"] == "7"
+
+
+def test_a_writer_failure_is_reported_not_silent(tmp_path: Path) -> None:
+    setup = RecordingSetup(trial={}, channel_names=("a", "b"))
+    rec = TrialRecorder(tmp_path / "trial-0", setup)
+
+    def broken(tick: Tick) -> None:
+        raise OSError("disk full")
+
+    rec._write = broken  # type: ignore[method-assign]
+    with rec:
+        for k in range(3):
+            rec.log(_tick(k))
+    assert rec.status == "failed"
+    assert "disk full" in rec.stats.error
+    assert read_mcap(rec.mcap_path)[2]["recorder"]["error"] == "OSError: disk full"
+
+
+# ---- honest timing -------------------------------------------------------------------------
+
+
+class _LoggingRig:
+    """A SimRig that logs the order of apply and advance calls."""
+
+    def __init__(self) -> None:
+        self.rig = SimRig.default(seed=0)
+        self.calls: list[tuple[str, float]] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.rig, name)
+
+    def apply(self, currents: Any) -> Any:
+        self.calls.append(("apply", 0.0))
+        return self.rig.apply(currents)
+
+    def advance(self, duration: float) -> None:
+        self.calls.append(("advance", duration))
+        self.rig.advance(duration)
+
+
+@pytest.mark.parametrize("compute_ticks", [0.25, 2.5])
+def test_charged_compute_time_delays_the_currents_and_stretches_overrunning_ticks(
+    compute_ticks: float,
+) -> None:
+    controller = make_controller("baseline3")
+    dt = controller.dt
+    c = compute_ticks * dt
+    times = iter(np.arange(1000) * c)  # the loop reads the clock before and after: c apart
+    rig = _LoggingRig()
+    log = run_trial(
+        controller, rig, s_trajectory(), duration=0.5, charge_compute=True,  # type: ignore[arg-type]
+        clock=lambda: float(next(times)),
+    )  # fmt: skip
+    period = max(dt, c)
+    np.testing.assert_allclose(np.diff(log.t), period, rtol=1e-12)
+    np.testing.assert_allclose(log.compute_time, c, rtol=1e-9)
+    # each tick: the plant runs c with the old currents, then the new ones for the rest
+    first = rig.calls[:3] if c < dt else rig.calls[:2]
+    assert first[0] == ("advance", pytest.approx(c))
+    assert first[1] == ("apply", 0.0)
+    if c < dt:
+        assert first[2] == ("advance", pytest.approx(dt - c))
+    assert len(log.t) == math.floor(0.5 / period + 1e-9) + 1
+
+
+def test_without_charging_the_plant_waits_for_the_controller() -> None:
+    controller = make_controller("baseline3")
+    rig = _LoggingRig()
+    log = run_trial(controller, rig, s_trajectory(), duration=0.2)  # type: ignore[arg-type]
+    assert rig.calls[:2] == [("apply", 0.0), ("advance", controller.dt)]
+    np.testing.assert_allclose(np.diff(log.t), controller.dt, rtol=1e-9)
