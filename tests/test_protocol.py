@@ -208,3 +208,8 @@ def test_out_and_back_goes_holds_turns_and_returns() -> None:
     assert end[2] == pytest.approx(np.pi)
     assert traj.pose(t_far + 6.0 + 1.0)[2] == pytest.approx(3 * np.pi / 2)
     assert np.all(np.diff(traj.t) > 0)
+
+
+def test_the_committed_json_schema_is_current() -> None:
+    # regenerate with: magrun protocol schema --out protocols/protocol.schema.json
+    assert (ROOT / "protocols" / "protocol.schema.json").read_text() == json_schema()
