@@ -220,6 +220,8 @@ def execute_trial(
             dropped_ticks=stats.dropped_ticks,
             rms_position_mm=log.rms_position_mm,
             rms_orientation_deg=log.rms_orientation_deg,
+            rms_prediction_position_mm=log.rms_prediction_position_mm,
+            rms_prediction_orientation_deg=log.rms_prediction_orientation_deg,
             overruns=int(np.count_nonzero(log.compute_time > controller.dt)),
             median_compute_ms=float(np.median(log.compute_time) * 1e3),
         )
@@ -271,6 +273,14 @@ def _run_in_worker(trial: Trial, out: str, rig: str, q: Any) -> dict[str, Any]:
     return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None)
 
 
+def _result_or_failure(get: Callable[[], dict[str, Any]], trial: Trial) -> dict[str, Any]:
+    """A worker's manifest entry, or a failed one when the worker itself died."""
+    try:
+        return get()
+    except Exception as exc:  # a killed or crashed worker process, a lost Ray node
+        return {**manifest_entry(trial), "status": "failed", "error": f"worker died: {exc!r}"}
+
+
 def local_executor(jobs: int = 1) -> Executor:
     """Run trials in this process (``jobs`` = 1) or a pool of ``jobs`` processes."""
 
@@ -285,14 +295,15 @@ def local_executor(jobs: int = 1) -> Executor:
         with ctx.Manager() as manager:
             q = manager.Queue() if progress is not None else None
             with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
-                pending = {pool.submit(_run_in_worker, t, str(out), rig, q) for t in trials}
+                futures = {pool.submit(_run_in_worker, t, str(out), rig, q): t for t in trials}
+                pending = set(futures)
                 while pending:
                     done, pending = cf.wait(pending, timeout=0.2)
                     while q is not None and not q.empty():
                         assert progress is not None
                         progress(*q.get_nowait())
                     for fut in done:
-                        yield fut.result()
+                        yield _result_or_failure(fut.result, futures[fut])
 
     return run
 
@@ -319,10 +330,17 @@ def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Exe
             )
         try:
             task = ray.remote(num_cpus=1)(_run_in_worker)
-            refs = [task.remote(t, str(out.resolve()), rig, None) for t in trials]
-            while refs:
-                ready, refs = ray.wait(refs, num_returns=1)
-                yield ray.get(ready[0])
+            refs = {task.remote(t, str(out.resolve()), rig, None): t for t in trials}
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                ref = ready[0]
+
+                def get(ref: Any = ref) -> dict[str, Any]:
+                    entry: dict[str, Any] = ray.get(ref)
+                    return entry
+
+                yield _result_or_failure(get, refs[ref])
         finally:
             if started:
                 ray.shutdown()

@@ -125,7 +125,9 @@ def test_rrd_reads_back_with_its_entities_and_passes_rerun_verify(tiny_run: Any)
 
     out, manifest = tiny_run
     path = out / "tiny" / manifest["trials"][0]["rrd"]
-    entities = {str(chunk.entity_path) for chunk in RrdReader(path).stream()}
+    reader = RrdReader(path)
+    assert [b.application_id for b in reader.blueprints()] == ["magrun"]  # the default layout
+    entities = {str(chunk.entity_path) for chunk in reader.stream()}
     for entity in (
         "/camera/image", "/camera/actual", "/camera/paths/actual", "/workspace/actual",
         "/workspace/paths/predicted", "/coils/currents", "/errors/position_mm",
@@ -318,3 +320,19 @@ def test_without_charging_the_plant_waits_for_the_controller() -> None:
     log = run_trial(controller, rig, s_trajectory(), duration=0.2)  # type: ignore[arg-type]
     assert rig.calls[:2] == [("apply", 0.0), ("advance", controller.dt)]
     np.testing.assert_allclose(np.diff(log.t), controller.dt, rtol=1e-9)
+
+
+def test_a_dead_worker_becomes_a_failed_trial_not_a_crashed_run() -> None:
+    from concurrent.futures.process import BrokenProcessPool
+
+    from magrun.runner import _result_or_failure
+
+    trial = load_protocol(TINY).expand()[0]
+
+    def dead() -> dict[str, Any]:
+        raise BrokenProcessPool("a child process terminated abruptly")
+
+    entry = _result_or_failure(dead, trial)
+    assert entry["status"] == "failed"
+    assert "terminated abruptly" in entry["error"]
+    assert entry["path"] == "baseline3_rate-5hz/trial-0"
