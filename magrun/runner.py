@@ -401,6 +401,7 @@ def run_protocol(
     write_manifest(path, manifest)
     run = executor or local_executor(jobs)
     for entry in run(trials, out, rig, progress):
+        entry = _finite(entry)  # NaN (no prediction: the PID) is null, in memory as on disk
         manifest["trials"][index[entry["path"]]] = entry
         write_manifest(path, manifest)
         if on_trial is not None:
