@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -143,14 +143,6 @@ class Phantom:
         axis = np.array([math.cos(p[2]), math.sin(p[2])]) * half
         d = segment_distances(p[:2] - axis, p[:2] + axis, segs)
         return float(d.min() - diameter / 2)
-
-    def to_json(self) -> dict[str, Any]:
-        """Geometry for a recording's metadata (m)."""
-        return {
-            "name": self.name,
-            "critical": self.critical,
-            "boundaries": {k: v.tolist() for k, v in self.boundaries.items()},
-        }
 
 
 def segment_distances(p0: FloatArray, p1: FloatArray, segs: FloatArray) -> FloatArray:

@@ -60,7 +60,6 @@ class Scene:
     walls: Any  # magrun.scene.Walls or None (the rig's default box)
     boundaries: dict[str, Any]
     critical: str | None
-    phantom: Any  # magrun.phantom.Phantom or None
 
 
 def build_scene(protocol: Protocol) -> Scene:
@@ -87,10 +86,8 @@ def build_scene(protocol: Protocol) -> Scene:
         from magrun.field.coils import CoilSystem
 
         box = Walls.box(CoilSystem.load().workspace_half_width)
-        return Scene(
-            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, phantom
-        )
-    return Scene(reference, None, {}, None, None)
+        return Scene(reference, phantom.walls() + box, phantom.boundaries, phantom.critical)
+    return Scene(reference, None, {}, None)
 
 
 def _control_config(trial: Trial) -> Any:
