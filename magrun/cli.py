@@ -12,6 +12,7 @@
     magrun validate protocols/*.yaml               # check protocols before running anything
     magrun run protocols/rate.yaml --jobs 2        # run, record MCAP + Rerun, manifest
     magrun view recordings/rate/proposed_rate-3hz/trial-0.rrd      # open in the Rerun viewer
+    magrun figures recordings --out figures        # paper figures, results.csv, report.md
 
 Bad input (a malformed file, an unknown option value) exits with status 2 and one message
 naming the file (and line where there is one); it never prints a traceback.
@@ -841,6 +842,65 @@ def view(recording: Path, save: Path | None) -> None:
         if done.returncode != 0:
             raise click.ClickException(f"rerun mcap convert failed: {done.stderr.strip()}")
     click.echo(f"wrote {save}")
+
+
+@cli.command("figures")
+@click.argument(
+    "recordings", type=click.Path(exists=True, path_type=Path), default=Path("recordings")
+)
+@click.option(
+    "--out", type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder  [default: RECORDINGS/figures]",
+)  # fmt: skip
+@click.option(
+    "--zernike-data", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Field-fit figure data (magrun field fit writes it)  [default: the shipped fit]",
+)  # fmt: skip
+@click.option("--no-zernike", is_flag=True, help="Skip the Zernike field-model figure.")
+def figures(
+    recordings: Path, out: Path | None, zernike_data: Path | None, no_zernike: bool
+) -> None:
+    """The paper's figures, results.csv and report.md from a folder of recordings.
+
+    RECORDINGS is what `magrun run --out` wrote (a folder of protocol folders), one protocol
+    folder, or one .mcap file. Every figure for which recordings exist is drawn, as PNG and
+    PDF; the Zernike figure comes from the field fit. Unreadable recordings are named on
+    stderr and left out; the rest still make figures (exit status 1 then).
+    """
+    from tqdm import tqdm
+
+    import analysis
+    from analysis.report import report_markdown
+
+    out = out or (recordings / "figures" if recordings.is_dir() else recordings.parent)
+    try:
+        data = analysis.load(
+            recordings,
+            progress=lambda it: tqdm(list(it), desc="reading", unit="trial", disable=None),
+        )
+    except (FileNotFoundError, analysis.RecordingError) as exc:
+        raise InputError(str(exc)) from exc
+    for problem in data.problems:
+        click.echo(f"unreadable: {problem}", err=True)
+    if data.trials.empty:
+        raise InputError(f"{recordings}: no recordings found (run `magrun run PROTOCOL` first)")
+    z = None
+    if not no_zernike:
+        from magrun.field.fitting import FIGURE_FILE
+
+        path = zernike_data or Path(__file__).parent / "field" / "data" / FIGURE_FILE
+        with np.load(path) as npz:
+            z = dict(npz)
+    written = analysis.figures.draw_all(data, out, zernike_data=z)
+    results = analysis.write_results(data, out / "results.csv")
+    report = out / "report.md"
+    report.write_text(report_markdown(data, written, out_dir=out))
+    for name, paths in written.items():
+        click.echo(f"{name:>18}: " + ", ".join(str(p) for p in paths))
+    click.echo(f"{'results':>18}: {results} ({len(data.trials)} trials)")
+    click.echo(f"{'report':>18}: {report}")
+    if data.problems:
+        raise click.ClickException(f"{len(data.problems)} recording(s) could not be read")
 
 
 @cli.group()

@@ -15,10 +15,10 @@ MCAP topic                        schema (protobuf)              Rerun entity
 ``<stream>`` is ``actual``, ``tracked``, ``measured``, ``estimated``, ``predicted`` and
 ``desired``. Log time is trial time in ns. MCAP metadata records: ``trial`` (protocol,
 method, condition values, seed, index, robot, software versions), ``protocol`` (the protocol
-as JSON), ``workspace`` (boundaries, m, as JSON) and, at the end, ``recorder`` (ticks
-written, dropped, status). The ``.rrd`` also carries ``/errors/*`` series and a blueprint:
-the camera view with paths overlaid, the workspace from above with its boundaries, and time
-series of currents and errors.
+as JSON), ``workspace`` (``boundaries``, m, and the square's ``half_width_m``, as JSON) and,
+at the end, ``recorder`` (ticks written, dropped, status). The ``.rrd`` also carries
+``/errors/*`` series and a blueprint: the camera view with paths overlaid, the workspace from
+above with its boundaries, and time series of currents and errors.
 
 The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.loop.Tick`; that
 only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
@@ -190,6 +190,7 @@ class RecordingSetup:
     channel_names: tuple[str, ...]
     protocol_json: str = "{}"
     boundaries: dict[str, FloatArray] = field(default_factory=dict)  # name -> (n, 2), m
+    workspace_half_width: float | None = None  # m, the square the robot may use
     reference: FloatArray | None = None  # (n, 3) the desired path, for the views
     camera: Any = None  # magrun.tracking.camera.Camera, for the pixel overlay
     image_every: int = 1
@@ -250,7 +251,10 @@ class TrialRecorder:
         self._mcap.add_metadata("protocol", {"json": self.setup.protocol_json})
         self._mcap.add_metadata(
             "workspace",
-            {"boundaries": json.dumps({k: v.tolist() for k, v in self.setup.boundaries.items()})},
+            {
+                "boundaries": json.dumps({k: v.tolist() for k, v in self.setup.boundaries.items()}),
+                "half_width_m": json.dumps(self.setup.workspace_half_width),
+            },
         )
         self._rerun_start()
         self._last_flush = 0

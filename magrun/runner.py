@@ -60,10 +60,12 @@ class Scene:
     walls: Any  # magrun.scene.Walls or None (the rig's default box)
     boundaries: dict[str, Any]
     critical: str | None
+    half_width: float  # m, half the side of the square workspace
 
 
 def build_scene(protocol: Protocol) -> Scene:
     """The reference trajectory and walls a protocol describes."""
+    from magrun.field.coils import CoilSystem
     from magrun.phantom import load_phantom
     from magrun.scene import Walls, out_and_back, s_trajectory
 
@@ -82,12 +84,13 @@ def build_scene(protocol: Protocol) -> Scene:
         else:
             points = np.asarray(traj.path, dtype=np.float64) * 1e-3
         reference = out_and_back(points, traj.speed_mm_s * 1e-3, traj.hold_s, traj.flip_s)
+    half_width = CoilSystem.load().workspace_half_width
     if phantom is not None:
-        from magrun.field.coils import CoilSystem
-
-        box = Walls.box(CoilSystem.load().workspace_half_width)
-        return Scene(reference, phantom.walls() + box, phantom.boundaries, phantom.critical)
-    return Scene(reference, None, {}, None)
+        box = Walls.box(half_width)
+        return Scene(
+            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, half_width
+        )
+    return Scene(reference, None, {}, None, half_width)
 
 
 def _control_config(trial: Trial) -> Any:
@@ -190,6 +193,7 @@ def execute_trial(
             channel_names=tuple(the_rig.channel_names),
             protocol_json=protocol.model_dump_json(),
             boundaries=scene.boundaries,
+            workspace_half_width=scene.half_width,
             reference=scene.reference.poses,
             camera=the_rig.camera,
             image_every=protocol.recording.image_every,

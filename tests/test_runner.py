@@ -169,6 +169,30 @@ def test_ray_executor_runs_the_same_trials_on_a_local_ray_instance(
     assert read_mcap(out1 / "tiny" / e["mcap"])[1] == read_mcap(tmp_path / "tiny" / e["mcap"])[1]
 
 
+def test_analysis_reads_the_runner_recordings_to_the_same_errors(tiny_run: Any) -> None:
+    # the analysis package computes its errors from the MCAP alone; magrun computed the
+    # manifest's from the loop's arrays: two independent computations of the same RMS
+    import analysis
+
+    out, manifest = tiny_run
+    data = analysis.load(out)
+    assert not data.problems
+    by_path = {Path(p).relative_to(out / "tiny").as_posix(): row for p, row in zip(
+        data.trials["path"], data.trials.to_dict("records"), strict=True)}  # fmt: skip
+    for entry in manifest["trials"]:
+        row = by_path[entry["mcap"]]
+        for key in ("rms_position_mm", "rms_orientation_deg", "rms_prediction_position_mm",
+                    "rms_prediction_orientation_deg"):  # fmt: skip
+            if entry[key] is None:  # no predictions (a PID baseline): empty in both
+                assert math.isnan(row[key]), key
+            else:
+                assert row[key] == pytest.approx(entry[key], rel=1e-9, abs=1e-12), key
+        assert row["ticks"] == entry["ticks"]
+        assert (row["method"], row["trial"]) == (entry["method"], entry["trial"])
+        rec = data.recordings[row["path"]]
+        assert rec.workspace["half_width_m"] > 0.02
+
+
 def test_run_refuses_to_overwrite_recordings(tiny_run: Any) -> None:
     out, _ = tiny_run
     result = CliRunner().invoke(cli, ["run", str(TINY), "--out", str(out)])

@@ -1,0 +1,351 @@
+"""The paper's figures, drawn from recordings (and, for ``zernike``, from the field-fit data).
+
+Every function returns a :class:`matplotlib.figure.Figure` (no pyplot state, no display
+needed); :func:`save` writes it as PNG and PDF. :func:`draw_all` picks the figure kind of each
+protocol in a :class:`~analysis.load.Dataset` from what its recordings hold:
+
+- boundaries in the recordings (a phantom): ``phantom`` — desired and actual paths inside the
+  boundaries, the point of least clearance to the critical boundary marked (paper Fig. 10);
+- a swept condition (several tracking rates or noise levels): ``sweep`` — RMS position and
+  orientation error against it, one line per method, mean ± std across trials (Figs. 7–9);
+  when the sweep is over tracking rate with noise, a violin plot of the per-sample errors at
+  the lowest rate with Holm-corrected Mann–Whitney stars against the proposed method (Fig. 9c);
+- otherwise: ``trajectories`` — (a) the workspace with the desired path, (b) actual and
+  NMPC-predicted paths (Fig. 6).
+
+Units on every axis: mm, degrees, Hz, mT.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import seaborn as sns
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from analysis import stats
+from analysis.load import Dataset, Recording
+
+#: colours of the paper's figures: desired green, actual red/blue, predicted red, walls purple
+COLORS = {
+    "desired": "#2ca02c",
+    "actual": "#d62728",
+    "predicted": "#ff7f0e",
+    "boundary": "#7b3fa0",
+    "critical": "#b0179a",
+}
+CONDITION_LABELS = {
+    "tracking_rate_hz": "tracking rate (Hz)",
+    "noise_sigma_mm": "noise σ (mm)",
+    "noise_sigma_deg": "noise σ (deg)",
+}
+FORMATS = ("png", "pdf")
+
+
+def _style() -> None:
+    sns.set_theme(context="paper", style="whitegrid", font_scale=1.1)
+
+
+def save(fig: Figure, out: str | Path, name: str) -> list[Path]:
+    """Write ``fig`` as ``out/name.png`` (200 dpi) and ``out/name.pdf``; return the paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for fmt in FORMATS:
+        p = out / f"{name}.{fmt}"
+        meta: dict[str, Any] = {"CreationDate": None} if fmt == "pdf" else {}
+        fig.savefig(p, dpi=200, bbox_inches="tight", metadata=meta)
+        paths.append(p)
+    return paths
+
+
+def _method_order(methods: list[str]) -> list[str]:
+    return sorted(methods, key=lambda m: (m != "proposed", m))
+
+
+def _palette(methods: list[str]) -> dict[str, Any]:
+    colors = sns.color_palette("colorblind", n_colors=max(len(methods), 1))
+    return dict(zip(_method_order(methods), colors, strict=False))
+
+
+# --------------------------------------------------------------------------------------------
+# zernike (paper Fig. 4): from the data `magrun field fit` writes
+
+
+def zernike(data: dict[str, np.ndarray], coil_type: str = "small") -> Figure:
+    """(a) MAE and R² vs order per coil type, (b) |B| of one coil at 1 A, (c) |fit error|.
+
+    ``data`` holds, per coil type ``c``: ``c_orders``, ``c_mae_mT``, ``c_r2``, ``c_x_mm``,
+    ``c_y_mm``, ``c_field_mT`` (ny, nx) and ``c_error_mT`` (ny, nx), as in
+    ``magrun/field/data/zernike_figure.npz``.
+    """
+    _style()
+    types = [k[: -len("_orders")] for k in data if k.endswith("_orders")]
+    if coil_type not in types:
+        raise KeyError(f"no fit data for coil type {coil_type!r} (have {types})")
+    fig = Figure(figsize=(15, 4.4), layout="constrained")
+    ax_a, ax_b, ax_c = fig.subplots(1, 3, width_ratios=[1.2, 1, 1])
+    ax_r2 = ax_a.twinx()
+    palette = sns.color_palette("colorblind", n_colors=len(types))
+    for color, t in zip(palette, types, strict=True):
+        orders = data[f"{t}_orders"]
+        ax_a.plot(orders, data[f"{t}_mae_mT"], "-o", color=color, label=f"{t}: MAE")
+        ax_r2.plot(orders, data[f"{t}_r2"], "--s", color=color, label=f"{t}: R²", ms=4)
+    ax_a.set(xlabel="Zernike order", ylabel="MAE at 1 A (mT)", title="(a) fit quality vs order")
+    ax_r2.set_ylabel("R²")
+    ax_r2.set_ylim(0, 1.02)
+    ax_r2.grid(False)
+    handles = ax_a.get_legend_handles_labels()[0] + ax_r2.get_legend_handles_labels()[0]
+    labels = ax_a.get_legend_handles_labels()[1] + ax_r2.get_legend_handles_labels()[1]
+    ax_a.legend(handles, labels, fontsize=7, ncol=2, loc="center right")
+    x, y = data[f"{coil_type}_x_mm"], data[f"{coil_type}_y_mm"]
+    extent = (x[0], x[-1], y[0], y[-1])
+    for ax, key, title, cmap in (
+        (ax_b, "field_mT", f"(b) |B|, {coil_type} coil at 1 A", "viridis"),
+        (ax_c, "error_mT", "(c) |B_fit − B_ref| at 1 A", "magma"),
+    ):
+        im = ax.imshow(data[f"{coil_type}_{key}"], origin="lower", extent=extent, cmap=cmap)
+        ax.set(xlabel="x (mm)", ylabel="y (mm)", title=title, aspect="equal")
+        ax.grid(False)
+        fig.colorbar(im, ax=ax, label="mT", shrink=0.85)
+    return fig
+
+
+# --------------------------------------------------------------------------------------------
+# trajectories (paper Fig. 6): the prediction experiment
+
+
+def _first(data: Dataset, protocol: str) -> Recording:
+    ok = data.ok(protocol).sort_values(["method", "trial"])
+    paths = [p for p in ok["path"] if p in data.recordings]
+    if not paths:
+        raise ValueError(f"no readable recordings of protocol {protocol!r}")
+    return data.recordings[paths[0]]
+
+
+def _xy_mm(df: pd.DataFrame, suffix: str = "") -> tuple[np.ndarray, np.ndarray]:
+    return df[f"x{suffix}"].to_numpy() * 1e3, df[f"y{suffix}"].to_numpy() * 1e3
+
+
+def trajectories(data: Dataset, protocol: str) -> Figure:
+    """(a) The workspace and the desired path; (b) actual and NMPC-predicted paths (trial 0)."""
+    _style()
+    rec = _first(data, protocol)
+    s = data.samples[data.samples["path"] == str(rec.path)]
+    fig = Figure(figsize=(11, 5.2), layout="constrained")
+    ax_a, ax_b = fig.subplots(1, 2, sharex=True, sharey=True)
+    half = rec.workspace.get("half_width_m")
+    for ax in (ax_a, ax_b):
+        if isinstance(half, (int, float)) and half > 0:
+            h = half * 1e3
+            ax.add_patch(
+                Rectangle((-h, -h), 2 * h, 2 * h, fill=False, ec="#e0b000", lw=2, label="workspace")
+            )
+        _draw_boundaries(ax, rec)
+        ax.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal")
+    ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2, label="desired")
+    ax_a.set_title(f"(a) workspace and desired path ({rec.trial.get('robot', 'robot')})")
+    ax_b.plot(*_xy_mm(s), color="#1f77b4", lw=1.5, label="actual")
+    ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["actual"], lw=1, ls="--", label="NMPC predicted")
+    r = data.trials.loc[data.trials["path"] == str(rec.path)].iloc[0]
+    ax_b.set_title(
+        f"(b) actual vs predicted: RMS {r['rms_prediction_position_mm']:.2f} mm, "
+        f"{r['rms_prediction_orientation_deg']:.1f}°"
+    )
+    for ax in (ax_a, ax_b):
+        ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def _draw_boundaries(ax: Any, rec: Recording) -> None:
+    for name, line in rec.boundaries.items():
+        critical = name == rec.critical
+        ax.plot(
+            line[:, 0] * 1e3, line[:, 1] * 1e3,
+            color=COLORS["critical" if critical else "boundary"], lw=2.2 if critical else 1.4,
+            label=f"{name} (critical)" if critical else None,
+        )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# sweeps (paper Figs. 7–9)
+
+
+def swept_condition(trials: pd.DataFrame) -> str | None:
+    """The condition a protocol's trials vary (the one with the most distinct values)."""
+    best, count = None, 1
+    for c in CONDITION_LABELS:
+        n = trials[c].dropna().nunique() if c in trials else 0
+        if n > count:
+            best, count = c, n
+    return best
+
+
+def _violin_condition(trials: pd.DataFrame, swept: str | None) -> dict[str, float] | None:
+    """The violin's condition: the lowest tracking rate of a rate sweep under noise."""
+    if swept != "tracking_rate_hz" or trials["method"].nunique() < 2:
+        return None
+    if not (trials["noise_sigma_mm"].fillna(0) > 0).all():
+        return None
+    return {"tracking_rate_hz": float(trials["tracking_rate_hz"].min())}
+
+
+def sweep(data: Dataset, protocol: str) -> Figure:
+    """RMS position and orientation error vs the swept condition, one line per method."""
+    _style()
+    trials = data.ok(protocol)
+    swept = swept_condition(trials)
+    if swept is None:
+        raise ValueError(f"protocol {protocol!r}: no condition varies across its trials")
+    violin = _violin_condition(trials, swept)
+    methods = _method_order(trials["method"].unique().tolist())
+    palette = _palette(methods)
+    ncols = 3 if violin else 2
+    fig = Figure(figsize=(5.2 * ncols, 4.4), layout="constrained")
+    axes = fig.subplots(1, ncols)
+    for ax, value, label, tag in (
+        (axes[0], "rms_position_mm", "RMS position error (mm)", "(a)"),
+        (axes[1], "rms_orientation_deg", "RMS orientation error (deg)", "(b)"),
+    ):
+        sns.lineplot(
+            data=trials, x=swept, y=value, hue="method", hue_order=methods, palette=palette,
+            style="method", style_order=methods, markers=True, dashes=False,
+            errorbar="sd", err_style="bars", err_kws={"capsize": 3}, ax=ax,
+        )  # fmt: skip
+        if trials[value].min() > 0 and trials[value].max() / trials[value].min() > 30:
+            ax.set_yscale("log")
+        ax.set(xlabel=CONDITION_LABELS[swept], ylabel=label, title=f"{tag} {label} vs {swept}")
+        ax.legend(fontsize=8, title=None)
+    if violin:
+        _violin(axes[2], data, protocol, violin, methods, palette)
+    return fig
+
+
+def _violin(
+    ax: Any,
+    data: Dataset,
+    protocol: str,
+    condition: dict[str, float],
+    methods: list[str],
+    palette: dict[str, Any],
+) -> None:
+    s = data.samples[data.samples["protocol"] == protocol]
+    for key, value in condition.items():
+        s = s[np.isclose(s[key], value)]
+    s = s[["method", "position_error_mm"]].dropna()
+    sns.violinplot(
+        data=s, x="method", y="position_error_mm", hue="method", order=methods,
+        hue_order=methods, palette=palette, cut=0, inner="quartile", density_norm="width",
+        legend=False, ax=ax,
+    )  # fmt: skip
+    tests = stats.compare_methods(s.assign(protocol=protocol), by=("protocol",))
+    top = float(s["position_error_mm"].max()) if len(s) else 1.0
+    for _, row in tests.iterrows():
+        i = methods.index(row["method"])
+        ax.annotate(
+            row["stars"], (i, top * 1.04), ha="center", va="bottom", fontsize=12, fontweight="bold"
+        )
+    ax.set_ylim(0, top * 1.15)
+    cond = ", ".join(f"{CONDITION_LABELS[k]} = {v:g}" for k, v in condition.items())
+    ax.set(xlabel="", ylabel="position error (mm)", title=f"(c) per-sample errors, {cond}")
+    ax.tick_params(axis="x", rotation=20)
+    if len(tests):
+        ax.text(
+            0.01, 0.99, f"vs {tests['reference'].iloc[0]}: Mann–Whitney U, Holm",
+            transform=ax.transAxes, ha="left", va="top", fontsize=7,
+        )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# phantom (paper Fig. 10)
+
+
+def phantom(data: Dataset, protocol: str) -> Figure:
+    """Desired and actual paths in the phantom, the least clearance to the critical wall."""
+    _style()
+    ok = data.ok(protocol).sort_values("rms_position_mm")
+    # the trial with the median RMS error: representative, not the best
+    rec = (
+        data.recordings[ok["path"].iloc[(len(ok) - 1) // 2]] if len(ok) else _first(data, protocol)
+    )
+    row = data.trials.loc[data.trials["path"] == str(rec.path)].iloc[0]
+    s = data.samples[data.samples["path"] == str(rec.path)]
+    fig = Figure(figsize=(7, 6.4), layout="constrained")
+    ax = fig.subplots()
+    _draw_boundaries(ax, rec)
+    ax.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2, label="desired")
+    ax.plot(*_xy_mm(s), color=COLORS["actual"], lw=1.3, label="actual")
+    if "clearance_mm" in s and s["clearance_mm"].notna().any():
+        i = int(np.nanargmin(s["clearance_mm"].to_numpy()))
+        x, y, th = (float(s[c].iloc[i]) for c in ("x", "y", "theta"))
+        _capsule(ax, x, y, th, rec.robot_length or 0.0, rec.robot_diameter or 0.0)
+        ax.annotate(
+            f"least clearance to {rec.critical}: {s['clearance_mm'].iloc[i]:.2f} mm "
+            f"(t = {s['t'].iloc[i]:.1f} s)",
+            (x * 1e3, y * 1e3), xytext=(0.03, 0.03), textcoords="axes fraction", fontsize=8,
+            arrowprops={"arrowstyle": "->", "color": "black", "lw": 0.8},
+        )  # fmt: skip
+    ax.set(
+        xlabel="x (mm)", ylabel="y (mm)", aspect="equal",
+        title=f"{protocol}, trial {row['trial']}: RMS {row['rms_position_mm']:.2f} mm, "
+        f"{row['rms_orientation_deg']:.1f}°",
+    )  # fmt: skip
+    ax.legend(fontsize=8, loc="upper right")
+    return fig
+
+
+def _capsule(ax: Any, x: float, y: float, th: float, length: float, diameter: float) -> None:
+    half = max(length / 2 - diameter / 2, 0.0)
+    a = np.linspace(-np.pi / 2, np.pi / 2, 20)
+    r = diameter / 2
+    front = np.stack([half + r * np.cos(a), r * np.sin(a)], axis=1)
+    back = np.stack([-half - r * np.cos(a), -r * np.sin(a)], axis=1)
+    outline = np.vstack([front, back, front[:1]])
+    rot = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    pts = (outline @ rot.T + [x, y]) * 1e3
+    ax.fill(pts[:, 0], pts[:, 1], color=COLORS["actual"], alpha=0.35, lw=0.8, ec="black")
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def figure_kind(data: Dataset, protocol: str) -> str:
+    """``phantom``, ``sweep`` or ``trajectories``: which figure a protocol's recordings make."""
+    trials = data.ok(protocol)
+    recs = [data.recordings[p] for p in trials["path"] if p in data.recordings]
+    if any(r.boundaries for r in recs):
+        return "phantom"
+    if swept_condition(trials) is not None:
+        return "sweep"
+    return "trajectories"
+
+
+KINDS: dict[str, Callable[[Dataset, str], Figure]] = {
+    "phantom": phantom,
+    "sweep": sweep,
+    "trajectories": trajectories,
+}
+
+
+def draw_all(
+    data: Dataset, out: str | Path, zernike_data: dict[str, np.ndarray] | None = None
+) -> dict[str, list[Path]]:
+    """Draw every figure the recordings (and the Zernike fit data, if given) allow.
+
+    Returns figure name → files written. A protocol's figure is named after the protocol.
+    """
+    written: dict[str, list[Path]] = {}
+    if zernike_data is not None:
+        written["zernike"] = save(zernike(zernike_data), out, "zernike")
+    for protocol in data.protocols():
+        if data.ok(protocol).empty:
+            continue
+        fig = KINDS[figure_kind(data, protocol)](data, protocol)
+        written[protocol] = save(fig, out, protocol)
+    return written

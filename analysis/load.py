@@ -1,0 +1,403 @@
+"""Read magrun recordings (MCAP files and manifests) into pandas.
+
+Only the recording format (README, "Recording format"; ARCHITECTURE.md, "CONTRACT:
+recordings") is assumed: protobuf messages are decoded with the schemas the MCAP file carries,
+robot dimensions and phantom boundaries come from its metadata records, so this module never
+imports magrun's control code and reads recordings from any rig.
+
+    >>> import analysis
+    >>> data = analysis.load("recordings")          # doctest: +SKIP
+    >>> data.trials[["method", "rms_position_mm"]]   # one row per trial
+    >>> data.samples                                 # one row per control tick
+
+Units: the :class:`Recording` keeps SI (m, rad, s, A) as recorded; the tables add
+``*_mm`` / ``*_deg`` / ``*_ms`` columns, named by unit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from analysis import metrics
+
+POSE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted", "desired")
+#: condition columns every table carries (empty where a recording does not set them)
+CONDITIONS = ("tracking_rate_hz", "noise_sigma_mm", "noise_sigma_deg")
+#: columns that identify a trial
+KEYS = ("protocol", "method", *CONDITIONS, "trial")
+#: ``trial`` metadata values that are text (the rest are JSON)
+_TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary"}
+RECOVER_HINT = "if its writer died, `magrun recover IN.mcap OUT.mcap` rebuilds it"
+
+
+class RecordingError(Exception):
+    """A recording that cannot be read; the message names the file."""
+
+    def __init__(self, path: Path | str, reason: str) -> None:
+        super().__init__(f"{path}: {reason}")
+        self.path = Path(path)
+        self.reason = reason
+
+
+@dataclass
+class Recording:
+    """One trial's MCAP file, decoded. SI units, times in s from the trial start."""
+
+    path: Path
+    trial: dict[str, Any]
+    protocol: dict[str, Any]
+    boundaries: dict[str, np.ndarray]  # name -> (n, 2) polyline, m
+    workspace: dict[str, Any]  # the rest of the ``workspace`` record (e.g. half_width_m)
+    recorder: dict[str, str]
+    poses: dict[str, pd.DataFrame]  # stream -> columns t, x, y, theta
+    currents: pd.DataFrame  # t, then one column per coil, A
+    status: pd.DataFrame  # t, solve_time, iterations, success, fallback, compute_time, ...
+
+    @property
+    def critical(self) -> str | None:
+        name = self.trial.get("critical_boundary") or None
+        return str(name) if name else None
+
+    @property
+    def robot_length(self) -> float | None:
+        return _float_or_none(self.trial.get("robot_length_m"))
+
+    @property
+    def robot_diameter(self) -> float | None:
+        return _float_or_none(self.trial.get("robot_diameter_m"))
+
+    def control_period(self) -> float:
+        """Nominal control period, s: the recorded control rate, else the median tick step."""
+        rate = _float_or_none(self.trial.get("control_rate_hz"))
+        if rate and rate > 0:
+            return 1.0 / rate
+        t = self.poses["desired"]["t"].to_numpy()
+        return float(np.median(np.diff(t))) if len(t) > 1 else math.nan
+
+
+def _float_or_none(value: Any) -> float | None:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        return None
+    return out if math.isfinite(out) else None
+
+
+def _decode_meta(record: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, text in record.items():
+        if key in _TEXT_KEYS:
+            out[key] = text
+            continue
+        try:
+            out[key] = json.loads(text)
+        except ValueError:
+            out[key] = text
+    return out
+
+
+def read_recording(path: str | Path, with_images: bool = False) -> Recording:
+    """Decode one trial's MCAP file.
+
+    Raises
+    ------
+    RecordingError
+        The file is missing, truncated, corrupt or not a magrun recording.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(path, "no such recording")
+    topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
+    if with_images:
+        topics.append("/camera/image")
+    poses: dict[str, list[tuple[int, float, float, float]]] = {s: [] for s in POSE_STREAMS}
+    currents: list[tuple[int, list[float]]] = []
+    names: list[str] = []
+    status: list[dict[str, Any]] = []
+    try:
+        with path.open("rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            if reader.get_summary() is None:
+                raise RecordingError(path, f"the file has no summary or index; {RECOVER_HINT}")
+            meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            for _schema, channel, message, msg in reader.iter_decoded_messages(
+                topics=topics, log_time_order=True
+            ):
+                t = message.log_time
+                topic = channel.topic
+                if topic.startswith("/robot/pose/"):
+                    p, q = msg.pose.position, msg.pose.orientation
+                    yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+                    poses[topic.rsplit("/", 1)[1]].append((t, p.x, p.y, yaw))
+                elif topic == "/coils/currents":
+                    names = list(msg.names)
+                    currents.append((t, list(msg.currents)))
+                elif topic == "/controller/status":
+                    status.append(
+                        {
+                            "t_ns": t,
+                            "solve_time": msg.solve_time,
+                            "iterations": msg.iterations,
+                            "success": msg.success,
+                            "fallback": msg.fallback,
+                            "compute_time": msg.compute_time,
+                            "measurement": msg.measurement,
+                            "tracking_lost": msg.tracking_lost,
+                        }
+                    )
+    except RecordingError:
+        raise
+    except Exception as exc:  # mcap raises several types for damaged files
+        raise RecordingError(
+            path, f"cannot be read ({type(exc).__name__}: {exc}); {RECOVER_HINT}"
+        ) from exc
+    if "trial" not in meta:
+        raise RecordingError(path, "no `trial` metadata record: not a magrun recording")
+    if not poses["desired"]:
+        raise RecordingError(path, "no /robot/pose/desired messages")
+    workspace = _decode_meta(meta.get("workspace", {}))
+    raw = workspace.pop("boundaries", {}) or {}
+    boundaries = {k: np.asarray(v, dtype=np.float64).reshape(-1, 2) for k, v in raw.items()}
+    protocol_json = meta.get("protocol", {}).get("json", "{}")
+    pose_frames = {
+        s: _with_seconds(pd.DataFrame(rows, columns=["t_ns", "x", "y", "theta"]))
+        for s, rows in poses.items()
+    }
+    cur = pd.DataFrame([c for _, c in currents], columns=names or None, dtype=np.float64).reindex(
+        columns=names
+    )
+    cur.insert(0, "t_ns", np.array([t for t, _ in currents], dtype=np.int64))
+    st = pd.DataFrame(
+        status,
+        columns=[
+            "t_ns", "solve_time", "iterations", "success", "fallback",
+            "compute_time", "measurement", "tracking_lost",
+        ],
+    )  # fmt: skip
+    return Recording(
+        path=path,
+        trial=_decode_meta(meta["trial"]),
+        protocol=json.loads(protocol_json) if protocol_json else {},
+        boundaries=boundaries,
+        workspace=workspace,
+        recorder=meta.get("recorder", {}),
+        poses=pose_frames,
+        currents=_with_seconds(cur),
+        status=_with_seconds(st),
+    )
+
+
+def _with_seconds(df: pd.DataFrame) -> pd.DataFrame:
+    df["t_ns"] = df["t_ns"].astype(np.int64)
+    df.insert(1, "t", df["t_ns"].to_numpy() * 1e-9)
+    return df
+
+
+# --------------------------------------------------------------------------------------------
+# a set of recordings
+
+
+@dataclass
+class Dataset:
+    """Recordings as tidy tables.
+
+    ``trials``: one row per trial (the identity columns :data:`KEYS`, ``status``, ``path``,
+    then the metrics of :func:`analysis.metrics.trial_metrics`). Trials a manifest lists as
+    failed or whose file cannot be read are rows too, with ``status`` and ``error`` set and
+    the metrics empty.
+    ``samples``: one row per control tick of every readable trial (:func:`samples_of`).
+    ``problems``: the recordings that could not be read, as :class:`RecordingError`.
+    """
+
+    trials: pd.DataFrame
+    samples: pd.DataFrame
+    recordings: dict[str, Recording] = field(default_factory=dict)  # key: trial path
+    problems: list[RecordingError] = field(default_factory=list)
+    root: Path | None = None
+
+    def protocols(self) -> list[str]:
+        return sorted(self.trials["protocol"].dropna().unique().tolist())
+
+    def ok(self, protocol: str | None = None) -> pd.DataFrame:
+        """The trials that were read, optionally of one protocol."""
+        t = self.trials[self.trials["status"] == "ok"]
+        return t if protocol is None else t[t["protocol"] == protocol]
+
+
+def samples_of(rec: Recording, tolerance: float | None = None) -> pd.DataFrame:
+    """One row per control tick: desired, actual, predicted and estimated poses and errors.
+
+    The desired pose is logged once per tick; the other streams are matched to it by log time
+    (nearest message within ``tolerance`` s, default half a control period), so a rig whose
+    camera runs at another rate than the controller is handled. Errors: ``position_error_mm``
+    and ``orientation_error_deg`` (actual vs desired, the angle wrapped to ±180°), and
+    ``prediction_*`` (actual vs the prediction made at the previous tick).
+    """
+    if tolerance is None:
+        tolerance = 0.5 * rec.control_period()
+    tol_ns = round(tolerance * 1e9) if math.isfinite(tolerance) else 0
+    out = rec.poses["desired"].rename(columns={"x": "x_des", "y": "y_des", "theta": "theta_des"})
+    for stream, suffix in (("actual", ""), ("predicted", "_pred"), ("estimated", "_est")):
+        other = (
+            rec.poses[stream]
+            .drop(columns="t")
+            .rename(columns={c: c + suffix for c in ("x", "y", "theta")})
+        )
+        out = pd.merge_asof(
+            out, other, on="t_ns", direction="nearest", tolerance=tol_ns
+        )  # fmt: skip
+    actual = out[["x", "y", "theta"]].to_numpy()
+    pos, ang = metrics.pose_errors(actual, out[["x_des", "y_des", "theta_des"]].to_numpy())
+    out["position_error_mm"] = pos * 1e3
+    out["orientation_error_deg"] = np.degrees(ang)
+    pos, ang = metrics.pose_errors(actual, out[["x_pred", "y_pred", "theta_pred"]].to_numpy())
+    out["prediction_position_error_mm"] = pos * 1e3
+    out["prediction_orientation_error_deg"] = np.degrees(ang)
+    if rec.critical and rec.critical in rec.boundaries and rec.robot_length is not None:
+        out["clearance_mm"] = 1e3 * metrics.capsule_clearance(
+            actual, rec.robot_length, rec.robot_diameter or 0.0, rec.boundaries[rec.critical]
+        )
+    return out
+
+
+def identity(rec: Recording) -> dict[str, Any]:
+    """The identity columns of a recording's trial (condition values as floats or NaN)."""
+    t = rec.trial
+    ident: dict[str, Any] = {
+        "protocol": t.get("protocol"),
+        "method": t.get("method"),
+        **{c: _float_or_nan(t.get(c)) for c in CONDITIONS},
+        "trial": int(t.get("trial", 0)),
+    }
+    return ident
+
+
+def _float_or_nan(value: Any) -> float:
+    f = _float_or_none(value)
+    return math.nan if f is None else f
+
+
+def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]]:
+    """The trials under ``root``: ``(mcap path, manifest entry or None)``.
+
+    ``root`` may be an ``.mcap`` file, a protocol folder (with ``manifest.json``), or a folder
+    of protocol folders (``magrun run``'s ``--out``). Manifests list every trial, failed ones
+    too; folders without a manifest are searched for ``*.mcap``.
+    """
+    root = Path(root)
+    if root.is_file():
+        return [(root, None)]
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such file or folder")
+    manifests = sorted([root / "manifest.json"] if (root / "manifest.json").is_file() else [])
+    if not manifests:
+        manifests = sorted(root.glob("*/manifest.json"))
+    found: list[tuple[Path, dict[str, Any] | None]] = []
+    listed: set[Path] = set()
+    for mf in manifests:
+        try:
+            manifest = json.loads(mf.read_text())
+            entries = manifest["trials"]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise RecordingError(mf, f"not a readable manifest ({exc})") from exc
+        for entry in entries:
+            p = (mf.parent / entry["mcap"]).resolve()
+            listed.add(p)
+            found.append(
+                (p, {**entry, "protocol": entry.get("protocol", manifest.get("protocol"))})
+            )
+    searched = [root] if not manifests else []
+    for folder in searched:
+        for p in sorted(folder.rglob("*.mcap")):
+            if p.resolve() not in listed:
+                found.append((p, None))
+    return found
+
+
+def load(
+    root: str | Path | Iterable[str | Path],
+    progress: Callable[[Iterable[Any]], Iterable[Any]] | None = None,
+    contact_mm: float = metrics.CONTACT_MM,
+) -> Dataset:
+    """Load recordings into a :class:`Dataset`.
+
+    Parameters
+    ----------
+    root : path or paths
+        Folders (see :func:`find_recordings`) or ``.mcap`` files.
+    progress : callable, optional
+        Wraps the iteration over trials (e.g. ``tqdm``).
+    contact_mm : float
+        Clearance, mm, at or below which the body counts as touching a boundary.
+
+    A recording that cannot be read does not stop the others: it becomes a row with
+    ``status = "unreadable"`` and its :class:`RecordingError` is in ``problems``.
+    """
+    roots = [root] if isinstance(root, (str, Path)) else list(root)
+    items = [item for r in roots for item in find_recordings(r)]
+    rows: list[dict[str, Any]] = []
+    samples: list[pd.DataFrame] = []
+    recordings: dict[str, Recording] = {}
+    problems: list[RecordingError] = []
+    iterator: Iterable[Any] = progress(items) if progress else items
+    for mcap_path, entry in iterator:
+        row: dict[str, Any] = {"path": str(mcap_path)}
+        if entry is not None:
+            conds = entry.get("conditions", {})
+            row.update(
+                protocol=entry.get("protocol"),
+                method=entry.get("method"),
+                **{c: _float_or_nan(conds.get(c)) for c in CONDITIONS},
+                trial=entry.get("trial"),
+                status=entry.get("status", "ok"),
+                error=entry.get("error", ""),
+            )
+            if row["status"] not in ("ok",) and not mcap_path.is_file():
+                rows.append(row)
+                continue
+        try:
+            rec = read_recording(mcap_path)
+        except RecordingError as exc:
+            problems.append(exc)
+            row.update(status="unreadable", error=exc.reason)
+            rows.append(row)
+            continue
+        row.update(identity(rec))
+        row.setdefault("status", "ok")
+        row.setdefault("error", "")
+        s = samples_of(rec)
+        row.update(metrics.trial_metrics(rec, s, contact_mm=contact_mm))
+        recordings[str(mcap_path)] = rec
+        ident = {k: row[k] for k in KEYS}
+        samples.append(s.assign(**ident, path=str(mcap_path)))
+        rows.append(row)
+    trials = pd.DataFrame(rows)
+    for col in (*KEYS, "status", "error", "path"):
+        if col not in trials:
+            trials[col] = pd.Series(dtype=object)
+    first = [*KEYS, "status", "error"]
+    trials = trials[first + [c for c in trials.columns if c not in first]]
+    trials = trials.sort_values(list(KEYS), kind="stable", na_position="first").reset_index(
+        drop=True
+    )
+    sample_frame = pd.concat(samples, ignore_index=True) if samples else pd.DataFrame()
+    if not sample_frame.empty:
+        lead = [*KEYS, "t"]
+        sample_frame = sample_frame[lead + [c for c in sample_frame.columns if c not in lead]]
+    return Dataset(
+        trials=trials,
+        samples=sample_frame,
+        recordings=recordings,
+        problems=problems,
+        root=Path(roots[0]) if len(roots) == 1 else None,
+    )

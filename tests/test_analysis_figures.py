@@ -1,0 +1,188 @@
+"""Figures, results.csv, the report and ``magrun figures`` on a small synthetic recording set."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from synthetic import SynthTrial, paper_set, wall, write_set
+
+import analysis
+from analysis import figures, report, stats
+from magrun.cli import cli
+from magrun.field.fitting import FIGURE_FILE
+
+ZERNIKE = Path(__file__).parents[1] / "magrun" / "field" / "data" / FIGURE_FILE
+CONTRACT = [
+    "protocol", "method", "tracking_rate_hz", "noise_sigma_mm", "trial", "rms_position_mm",
+    "rms_orientation_deg", "rms_prediction_position_mm", "rms_prediction_orientation_deg",
+    "min_clearance_mm",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def paper(tmp_path_factory: pytest.TempPathFactory) -> analysis.Dataset:
+    return analysis.load(paper_set(tmp_path_factory.mktemp("rec")))
+
+
+def test_each_protocol_gets_the_paper_figure_kind(paper: analysis.Dataset) -> None:
+    kinds = {p: figures.figure_kind(paper, p) for p in paper.protocols()}
+    assert kinds == {
+        "noise": "sweep",
+        "prediction": "trajectories",
+        "rate": "sweep",
+        "rate_under_noise": "sweep",
+        "spine": "phantom",
+    }
+    assert figures.swept_condition(paper.ok("noise")) == "noise_sigma_mm"
+    assert figures.swept_condition(paper.ok("rate")) == "tracking_rate_hz"
+
+
+def test_every_figure_renders_as_png_and_pdf(paper: analysis.Dataset, tmp_path: Path) -> None:
+    with np.load(ZERNIKE) as npz:
+        written = figures.draw_all(paper, tmp_path, zernike_data=dict(npz))
+    assert set(written) == {"zernike", "prediction", "rate", "noise", "rate_under_noise", "spine"}
+    for paths in written.values():
+        assert sorted(p.suffix for p in paths) == [".pdf", ".png"]
+        for p in paths:
+            head = p.read_bytes()[:8]
+            assert head.startswith(b"\x89PNG" if p.suffix == ".png" else b"%PDF"), p
+            assert p.stat().st_size > 10_000, p
+
+
+def test_sweep_lines_are_the_trial_means(paper: analysis.Dataset) -> None:
+    fig = figures.sweep(paper, "rate")
+    ax = fig.axes[0]
+    assert len(fig.axes) == 2  # no noise in `rate`: no violin
+    trials = paper.ok("rate")
+    want = trials.groupby(["method", "tracking_rate_hz"])["rms_position_mm"].mean()
+    lines = {
+        line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")
+    }
+    for method in ("proposed", "baseline1", "baseline2"):
+        x, y = lines[method].get_data()
+        np.testing.assert_allclose(y, [want[(method, r)] for r in x], rtol=1e-12)
+
+
+def test_rate_under_noise_adds_the_violin_with_the_test_stars(paper: analysis.Dataset) -> None:
+    fig = figures.sweep(paper, "rate_under_noise")
+    assert len(fig.axes) == 3
+    texts = [t.get_text() for t in fig.axes[2].texts if "*" in t.get_text() or t.get_text() == "ns"]
+    s = paper.samples
+    at3 = s[(s["protocol"] == "rate_under_noise") & (s["tracking_rate_hz"] == 3.0)]
+    tests = stats.compare_methods(at3)
+    assert texts == list(tests.sort_values("method")["stars"])
+    assert all(t == "***" for t in texts)  # synthetic baselines are 2–3× worse at 3 Hz
+
+
+def test_phantom_figure_marks_the_least_clearance(paper: analysis.Dataset) -> None:
+    fig = figures.phantom(paper, "spine")
+    notes = [t.get_text() for t in fig.axes[0].texts]
+    assert any("least clearance to anterior" in n for n in notes)
+    least = paper.ok("spine")["min_clearance_mm"].min()
+    assert any(f"{least:.2f} mm" in n for n in notes)
+
+
+def test_results_csv_has_the_contract_columns_and_empty_missing_values(
+    paper: analysis.Dataset, tmp_path: Path
+) -> None:
+    path = report.write_results(paper, tmp_path / "results.csv")
+    with path.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0])[: len(CONTRACT)] == CONTRACT
+    assert len(rows) == len(paper.trials)
+    spine = [r for r in rows if r["protocol"] == "spine"]
+    other = [r for r in rows if r["protocol"] != "spine"]
+    assert all(r["min_clearance_mm"] == "" for r in other)  # empty, not zero
+    assert all(float(r["min_clearance_mm"]) > 0 for r in spine)
+    assert all(not Path(r["path"]).is_absolute() for r in rows)
+    pred = [r for r in rows if r["protocol"] == "prediction"]
+    assert all(float(r["rms_prediction_position_mm"]) == pytest.approx(1.0) for r in pred)
+
+
+def test_headlines_compare_with_the_paper(paper: analysis.Dataset) -> None:
+    heads = {h.claim.split(" (")[-1].rstrip(")"): h for h in report.headlines(paper)}
+    # synthetic prediction error is 1 mm (> the paper's 0.69 mm)
+    assert heads["prediction"].verdict == "no"
+    assert "1.000" in heads["prediction"].ours
+    # synthetic rate: proposed 0.3 mm, baseline1 0.6–1.2 mm, baseline2 0.9–1.8 mm RMS + noise
+    assert heads["rate"].verdict == "no"
+    assert heads["rate_under_noise"].verdict == "yes"
+    # spine: 1 mm, 5°, clear of the walls: better than the paper on every count
+    assert heads["spine"].verdict == "yes"
+
+
+def test_headlines_say_what_was_not_recorded(tmp_path: Path) -> None:
+    data = analysis.load(write_set(tmp_path, [SynthTrial("prediction", "proposed")]))
+    verdicts = [h.verdict for h in report.headlines(data)]
+    assert verdicts == ["no", "not recorded", "not recorded", "not recorded"]
+
+
+def test_spine_clearance_lost_is_reported(tmp_path: Path) -> None:
+    s = SynthTrial(
+        "spine", "proposed", offset=(0.0, 7.5e-3, 0.0), boundaries={"anterior": wall(8e-3)},
+        critical="anterior",
+    )  # fmt: skip
+    data = analysis.load(write_set(tmp_path, [s]))
+    (head,) = [h for h in report.headlines(data) if "spine" in h.claim]
+    # 7.5 mm RMS (worse than 1.18), 0° (better than 7.6°), 0.5 mm into the anterior wall
+    assert head.verdict == "partly"
+    assert "least clearance -0.50 mm" in head.ours
+
+
+# ---- the command ----------------------------------------------------------------------------
+
+
+def _run(*args: Any) -> Any:
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+def test_magrun_figures_writes_figures_results_and_report(tmp_path: Path) -> None:
+    root = paper_set(tmp_path / "rec")
+    out = tmp_path / "figs"
+    res = _run("figures", root, "--out", out)
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in out.iterdir())
+    for fig in ("zernike", "prediction", "rate", "noise", "rate_under_noise", "spine"):
+        assert f"{fig}.png" in names
+        assert f"{fig}.pdf" in names
+    assert "results.csv" in names
+    text = (out / "report.md").read_text()
+    assert "| claim | paper | ours | verdict |" in text
+    assert "![rate_under_noise](rate_under_noise.png)" in text
+    assert "0.69 mm, 6.0°" in text
+
+
+def test_magrun_figures_goes_on_past_a_damaged_recording(tmp_path: Path) -> None:
+    trials = [SynthTrial("prediction", "proposed", trial=k) for k in range(2)]
+    root = write_set(tmp_path / "rec", trials)
+    broken = root / "prediction" / trials[0].slug / "trial-0.mcap"
+    broken.write_bytes(broken.read_bytes()[:300])
+    res = _run("figures", root, "--out", tmp_path / "figs", "--no-zernike")
+    assert res.exit_code == 1
+    assert f"unreadable: {broken}" in res.output
+    assert "magrun recover" in res.output
+    assert "Traceback" not in res.output
+    assert (tmp_path / "figs" / "prediction.png").is_file()
+    with (tmp_path / "figs" / "results.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["unreadable", "ok"]
+    assert rows[0]["rms_position_mm"] == ""
+
+
+def test_magrun_figures_on_an_empty_folder_is_an_input_error(tmp_path: Path) -> None:
+    res = _run("figures", tmp_path)
+    assert res.exit_code == 2
+    assert "no recordings found" in res.output
+
+
+def test_report_numbers_are_the_datasets(paper: analysis.Dataset) -> None:
+    text = report.report_markdown(paper)
+    spine = paper.ok("spine")
+    assert f"{spine['rms_position_mm'].mean():.2f}" in text
+    assert not math.isnan(spine["rms_position_mm"].mean())
