@@ -82,7 +82,7 @@ def zernike(data: dict[str, np.ndarray], coil_type: str = "small") -> Figure:
     """(a) MAE and R² vs order per coil type, (b) |B| of one coil at 1 A, (c) |fit error|.
 
     ``data`` holds, per coil type ``c``: ``c_orders``, ``c_mae_mT``, ``c_r2``, ``c_x_mm``,
-    ``c_y_mm``, ``c_field_mT`` (ny, nx) and ``c_error_mT`` (ny, nx), as in
+    ``c_y_mm``, ``c_field_mT`` (nx, ny) and ``c_error_mT`` (nx, ny), as in
     ``magrun/field/data/zernike_figure.npz``.
     """
     _style()
@@ -110,7 +110,8 @@ def zernike(data: dict[str, np.ndarray], coil_type: str = "small") -> Figure:
         (ax_b, "field_mT", f"(b) |B|, {coil_type} coil at 1 A", "viridis"),
         (ax_c, "error_mT", "(c) |B_fit − B_ref| at 1 A", "magma"),
     ):
-        im = ax.imshow(data[f"{coil_type}_{key}"], origin="lower", extent=extent, cmap=cmap)
+        # the maps are indexed [ix, iy]; imshow wants rows = y
+        im = ax.imshow(data[f"{coil_type}_{key}"].T, origin="lower", extent=extent, cmap=cmap)
         ax.set(xlabel="x (mm)", ylabel="y (mm)", title=title, aspect="equal")
         ax.grid(False)
         fig.colorbar(im, ax=ax, label="mT", shrink=0.85)

@@ -37,7 +37,8 @@ CONDITIONS = ("tracking_rate_hz", "noise_sigma_mm", "noise_sigma_deg")
 KEYS = ("protocol", "method", *CONDITIONS, "trial")
 #: ``trial`` metadata values that are text (the rest are JSON)
 _TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary"}
-RECOVER_HINT = "if its writer died, `magrun recover IN.mcap OUT.mcap` rebuilds it"
+#: what a damaged file's error adds (a recorder killed mid-trial leaves a file without index)
+RECOVER_HINT = "the file is truncated or damaged (a recorder that died leaves it unindexed)"
 
 
 class RecordingError(Exception):
@@ -128,7 +129,7 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
         with path.open("rb") as fh:
             reader = make_reader(fh, decoder_factories=[DecoderFactory()])
             if reader.get_summary() is None:
-                raise RecordingError(path, f"the file has no summary or index; {RECOVER_HINT}")
+                raise RecordingError(path, f"no summary or index: {RECOVER_HINT}")
             meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
             for _schema, channel, message, msg in reader.iter_decoded_messages(
                 topics=topics, log_time_order=True
@@ -159,7 +160,7 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
         raise
     except Exception as exc:  # mcap raises several types for damaged files
         raise RecordingError(
-            path, f"cannot be read ({type(exc).__name__}: {exc}); {RECOVER_HINT}"
+            path, f"cannot be read: {RECOVER_HINT} ({type(exc).__name__}: {exc})"
         ) from exc
     if "trial" not in meta:
         raise RecordingError(path, "no `trial` metadata record: not a magrun recording")

@@ -219,6 +219,7 @@ def _md_table(df: pd.DataFrame, floatfmt: Mapping[str, str] | None = None) -> st
 
 
 def _summary_table(trials: pd.DataFrame) -> pd.DataFrame:
+    """Mean ± std across trials (:func:`analysis.stats.summarize`), formatted for the report."""
     values = {
         "rms_position_mm": "RMS position (mm)",
         "rms_orientation_deg": "RMS orientation (°)",
@@ -229,18 +230,16 @@ def _summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     }
     present = [v for v in values if v in trials and trials[v].notna().any()]
     keys = ["method", *[c for c in CONDITIONS if trials[c].nunique(dropna=True) > 0]]
-    rows = []
-    for key, g in trials.groupby(keys, dropna=False, sort=True):
-        row = dict(zip(keys, key if isinstance(key, tuple) else (key,), strict=True))
-        row["trials"] = len(g)
-        for v in present:
-            x = g[v].dropna()
-            row[values[v]] = (
-                f"{x.mean():.3g} ± {x.std(ddof=1):.2g}" if len(x) > 1 else
-                (f"{x.mean():.3g}" if len(x) else "")
-            )  # fmt: skip
-        rows.append(row)
-    return pd.DataFrame(rows)
+    agg = stats.summarize(trials, values=present, by=keys)
+    out = agg[keys].copy()
+    out["trials"] = trials.groupby(keys, dropna=False, sort=True).size().to_numpy()
+    for v in present:
+        mean, sd, n = agg[f"{v}_mean"], agg[f"{v}_std"], agg[f"{v}_count"]
+        out[values[v]] = [
+            "" if c == 0 else (f"{m:.3g} ± {d:.2g}" if c > 1 else f"{m:.3g}")
+            for m, d, c in zip(mean, sd, n, strict=True)
+        ]
+    return out
 
 
 def report_markdown(

@@ -55,6 +55,18 @@ def test_every_figure_renders_as_png_and_pdf(paper: analysis.Dataset, tmp_path: 
             assert p.stat().st_size > 10_000, p
 
 
+def test_zernike_maps_are_drawn_with_y_up() -> None:
+    # the base stack's coils sit on +y (README, "Coil system"): |B| of its small coil is
+    # largest on the image's top row (origin lower), and the map is the data transposed
+    with np.load(ZERNIKE) as npz:
+        data = dict(npz)
+    fig = figures.zernike(data)
+    img = np.asarray(fig.axes[1].get_images()[0].get_array())
+    np.testing.assert_array_equal(img, data["small_field_mT"].T)
+    row = np.unravel_index(np.argmax(img), img.shape)[0]
+    assert row == img.shape[0] - 1
+
+
 def test_sweep_lines_are_the_trial_means(paper: analysis.Dataset) -> None:
     fig = figures.sweep(paper, "rate")
     ax = fig.axes[0]
@@ -166,7 +178,7 @@ def test_magrun_figures_goes_on_past_a_damaged_recording(tmp_path: Path) -> None
     res = _run("figures", root, "--out", tmp_path / "figs", "--no-zernike")
     assert res.exit_code == 1
     assert f"unreadable: {broken}" in res.output
-    assert "magrun recover" in res.output
+    assert "truncated or damaged" in res.output
     assert "Traceback" not in res.output
     assert (tmp_path / "figs" / "prediction.png").is_file()
     with (tmp_path / "figs" / "results.csv").open() as fh:
