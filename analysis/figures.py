@@ -221,7 +221,11 @@ def sweep(data: Dataset, protocol: str) -> Figure:
         )  # fmt: skip
         if trials[value].min() > 0 and trials[value].max() / trials[value].min() > 30:
             ax.set_yscale("log")
-        ax.set(xlabel=CONDITION_LABELS[swept], ylabel=label, title=f"{tag} {label} vs {swept}")
+        ax.set(
+            xlabel=CONDITION_LABELS[swept],
+            ylabel=label,
+            title=f"{tag} {label.split(' (')[0]} vs {CONDITION_LABELS[swept].split(' (')[0]}",
+        )
         ax.legend(fontsize=8, title=None)
     if violin:
         _violin(axes[2], data, protocol, violin, methods, palette)

@@ -216,7 +216,8 @@ class Dataset:
     then the metrics of :func:`analysis.metrics.trial_metrics`). Trials a manifest lists as
     failed or whose file cannot be read are rows too, with ``status`` and ``error`` set and
     the metrics empty.
-    ``samples``: one row per control tick of every readable trial (:func:`samples_of`).
+    ``samples``: one row per control tick of every trial with status ``ok``
+    (:func:`samples_of`); ``recordings`` holds those trials' decoded files.
     ``problems``: the recordings that could not be read, as :class:`RecordingError`.
     """
 
@@ -378,10 +379,11 @@ def load(
         row.setdefault("error", "")
         s = samples_of(rec)
         row.update(metrics.trial_metrics(rec, s, contact_mm=contact_mm))
-        recordings[str(mcap_path)] = rec
-        ident = {k: row[k] for k in KEYS}
-        samples.append(s.assign(**ident, path=str(mcap_path)))
         rows.append(row)
+        if row["status"] != "ok":  # a trial that failed midway: its metrics, not its samples
+            continue
+        recordings[str(mcap_path)] = rec
+        samples.append(s.assign(**{k: row[k] for k in KEYS}, path=str(mcap_path)))
     trials = pd.DataFrame(rows)
     for col in (*KEYS, "status", "error", "path"):
         if col not in trials:

@@ -240,3 +240,14 @@ def test_analysis_imports_nothing_of_magrun() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_a_trial_that_failed_midway_keeps_its_metrics_but_not_its_samples(tmp_path: Path) -> None:
+    failed = SynthTrial("p", "m", trial=1)
+    root = write_set(tmp_path, [SynthTrial("p", "m", trial=0)], failed=[failed])
+    write_mcap(root / "p" / failed.slug / "trial-1.mcap", failed)  # the part it recorded
+    data = analysis.load(root)
+    row = data.trials.set_index("trial").loc[1]
+    assert (row["status"], row["error"]) == ("failed", "boom")
+    assert row["rms_position_mm"] == pytest.approx(5.0)
+    assert set(data.samples["trial"]) == {0}
