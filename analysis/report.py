@@ -252,8 +252,9 @@ def report_markdown(
     lines = [
         "# magrun results",
         "",
-        f"Recordings: `{data.root}` — {int((data.trials['status'] == 'ok').sum())} trials "
-        f"read, {int((data.trials['status'] != 'ok').sum())} failed or unreadable.",
+        f"Recordings: `{data.root}` — trials: "
+        + ", ".join(f"{n} {status}" for status, n in data.trials["status"].value_counts().items())
+        + ".",
         "",
         "## The paper's headline numbers beside ours",
         "",
@@ -307,7 +308,7 @@ def report_markdown(
                     _md_table(show, {"p_holm": ".2e", "t": "+.2f"}),
                 ]
     bad = data.trials[data.trials["status"] != "ok"]
-    lines += ["## Failed or unreadable trials", ""]
+    lines += ["## Trials not completed (failed, unreadable or pending)", ""]
     lines.append(_md_table(bad[["protocol", "method", "trial", "status", "error", "path"]]))
     if figures and "zernike" in figures:
         lines += ["## Zernike field model", "", "![zernike](zernike.png)", ""]
