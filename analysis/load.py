@@ -374,7 +374,7 @@ def load(
             row.update(status="unreadable", error=exc.reason)
             rows.append(row)
             continue
-        row.update(identity(rec))
+        row.update(identity(rec), quick=bool(rec.trial.get("quick", False)))
         row.setdefault("status", "ok")
         row.setdefault("error", "")
         s = samples_of(rec)

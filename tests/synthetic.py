@@ -45,6 +45,7 @@ class SynthTrial:
     dropped_ticks: int = 0
     seed: int = 0
     noise: float = 0.0  # m: Gaussian noise added to the actual position (for statistics)
+    quick: bool = False  # recorded by `magrun run --quick`
 
     @property
     def slug(self) -> str:
@@ -78,6 +79,7 @@ def write_mcap(path: Path, s: SynthTrial) -> Path:
             **{k: json.dumps(v) for k, v in s.conditions.items()},
             "trial": json.dumps(s.trial),
             "seed": json.dumps(s.seed),
+            "quick": json.dumps(s.quick),
             "robot": "synthetic",
             "robot_length_m": json.dumps(LENGTH),
             "robot_diameter_m": json.dumps(DIAMETER),
