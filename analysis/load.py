@@ -364,7 +364,7 @@ def load(
                 status=entry.get("status", "ok"),
                 error=entry.get("error", ""),
             )
-            if row["status"] not in ("ok",) and not mcap_path.is_file():
+            if row["status"] != "ok" and not mcap_path.is_file():
                 rows.append(row)
                 continue
         try:

@@ -105,16 +105,10 @@ def capsule_clearance(
     p0, p1 = (p[:, :2] - axis)[:, None, :], (p[:, :2] + axis)[:, None, :]
     a, b = line[None, :-1], line[None, 1:]
     out = np.full(len(p), np.nan)
-    good = np.all(np.isfinite(p), axis=1)
-    for start in range(0, len(p), 2048):  # bounded memory: 2048 poses × segments at a time
-        sl = slice(start, start + 2048)
-        sel = good[sl]
-        if not sel.any():
-            continue
-        d = segment_segment_distance(p0[sl][sel], p1[sl][sel], a, b).min(axis=1)
-        block = out[sl]
-        block[sel] = d - diameter / 2
-        out[sl] = block
+    good = np.flatnonzero(np.all(np.isfinite(p), axis=1))
+    for start in range(0, good.size, 2048):  # bounded memory: 2048 poses × segments at a time
+        i = good[start : start + 2048]
+        out[i] = segment_segment_distance(p0[i], p1[i], a, b).min(axis=1) - diameter / 2
     return out
 
 
