@@ -34,10 +34,11 @@ from analysis.load import Dataset, Recording
 
 #: colours of the paper's figures: desired green, actual red/blue, predicted red, walls purple
 COLORS = {
-    "desired": "#2ca02c",
-    "actual": "#d62728",
-    "predicted": "#ff7f0e",
-    "boundary": "#7b3fa0",
+    "desired": "#2ca02c",  # green
+    "actual": "#d62728",  # red (spine figure)
+    "actual_vs_predicted": "#1f77b4",  # blue (prediction figure, where the prediction is red)
+    "predicted": "#d62728",
+    "boundary": "#7b3fa0",  # purple
     "critical": "#b0179a",
 }
 CONDITION_LABELS = {
@@ -152,8 +153,8 @@ def trajectories(data: Dataset, protocol: str) -> Figure:
         ax.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal")
     ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2, label="desired")
     ax_a.set_title(f"(a) workspace and desired path ({rec.trial.get('robot', 'robot')})")
-    ax_b.plot(*_xy_mm(s), color="#1f77b4", lw=1.5, label="actual")
-    ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["actual"], lw=1, ls="--", label="NMPC predicted")
+    ax_b.plot(*_xy_mm(s), color=COLORS["actual_vs_predicted"], lw=1.5, label="actual")
+    ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["predicted"], lw=1, ls="--", label="NMPC predicted")
     r = data.trials.loc[data.trials["path"] == str(rec.path)].iloc[0]
     ax_b.set_title(
         f"(b) actual vs predicted: RMS {r['rms_prediction_position_mm']:.2f} mm, "
