@@ -136,25 +136,31 @@ def _xy_mm(df: pd.DataFrame, suffix: str = "") -> tuple[np.ndarray, np.ndarray]:
 
 
 def trajectories(data: Dataset, protocol: str) -> Figure:
-    """(a) The workspace and the desired path; (b) actual and NMPC-predicted paths (trial 0)."""
+    """(a) The workspace and the desired path; (b) actual and NMPC-predicted paths (trial 0).
+
+    (a) shows the whole workspace square (from the recording's ``workspace.half_width_m``),
+    (b) is zoomed to the paths.
+    """
     _style()
     rec = _first(data, protocol)
     s = data.samples[data.samples["path"] == str(rec.path)]
     fig = Figure(figsize=(11, 5.2), layout="constrained")
-    ax_a, ax_b = fig.subplots(1, 2, sharex=True, sharey=True)
+    # (a) the whole workspace square; (b) zoomed to the paths, where the millimetres show
+    ax_a, ax_b = fig.subplots(1, 2)
     half = rec.workspace.get("half_width_m")
+    if isinstance(half, (int, float)) and half > 0:
+        h = half * 1e3
+        ax_a.add_patch(
+            Rectangle((-h, -h), 2 * h, 2 * h, fill=False, ec="#e0b000", lw=2, label="workspace")
+        )
     for ax in (ax_a, ax_b):
-        if isinstance(half, (int, float)) and half > 0:
-            h = half * 1e3
-            ax.add_patch(
-                Rectangle((-h, -h), 2 * h, 2 * h, fill=False, ec="#e0b000", lw=2, label="workspace")
-            )
         _draw_boundaries(ax, rec)
         ax.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal")
     ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2, label="desired")
     ax_a.set_title(f"(a) workspace and desired path ({rec.trial.get('robot', 'robot')})")
     ax_b.plot(*_xy_mm(s), color=COLORS["actual_vs_predicted"], lw=1.5, label="actual")
     ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["predicted"], lw=1, ls="--", label="NMPC predicted")
+    _square_limits(ax_b, s, ("", "_pred", "_des"))
     r = data.trials.loc[data.trials["path"] == str(rec.path)].iloc[0]
     ax_b.set_title(
         f"(b) actual vs predicted: RMS {r['rms_prediction_position_mm']:.2f} mm, "
@@ -163,6 +169,17 @@ def trajectories(data: Dataset, protocol: str) -> Figure:
     for ax in (ax_a, ax_b):
         ax.legend(loc="best", fontsize=8)
     return fig
+
+
+def _square_limits(ax: Any, s: pd.DataFrame, suffixes: tuple[str, ...]) -> None:
+    """Square axis limits around the paths (10 % and 1 mm margin), whatever their shape."""
+    xy = np.vstack([np.column_stack(_xy_mm(s, suffix)) for suffix in suffixes])
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    if not len(xy):
+        return
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    centre, half = (lo + hi) / 2, float(np.max(hi - lo)) / 2 * 1.1 + 1.0
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half))
 
 
 def _draw_boundaries(ax: Any, rec: Recording) -> None:

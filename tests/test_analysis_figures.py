@@ -92,6 +92,21 @@ def test_rate_under_noise_adds_the_violin_with_the_test_stars(paper: analysis.Da
     assert all(t == "***" for t in texts)  # synthetic baselines are 2–3× worse at 3 Hz
 
 
+def test_trajectories_show_the_workspace_and_zoom_on_the_paths(paper: analysis.Dataset) -> None:
+    fig = figures.trajectories(paper, "prediction")
+    ax_a, ax_b = fig.axes
+    # (a): the recording's workspace square (half width 30 mm in the synthetic files)
+    (square,) = ax_a.patches
+    assert (square.get_x(), square.get_width()) == pytest.approx((-30.0, 60.0))
+    # (b): square limits that hold every plotted point (the synthetic path is a straight line)
+    (x0, x1), (y0, y1) = ax_b.get_xlim(), ax_b.get_ylim()
+    assert x1 - x0 == pytest.approx(y1 - y0)
+    for line in ax_b.get_lines():
+        x, y = (np.asarray(v, dtype=float) for v in line.get_data())
+        assert x0 <= np.nanmin(x) <= np.nanmax(x) <= x1  # NaN: no prediction at tick 0
+        assert y0 <= np.nanmin(y) <= np.nanmax(y) <= y1
+
+
 def test_phantom_figure_marks_the_least_clearance(paper: analysis.Dataset) -> None:
     fig = figures.phantom(paper, "spine")
     notes = [t.get_text() for t in fig.axes[0].texts]
