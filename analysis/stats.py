@@ -23,7 +23,7 @@ Star notation, as in the paper: ``***`` p < 0.001, ``**`` p < 0.01, ``*`` p < 0.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pandas as pd
@@ -61,6 +61,67 @@ def _order(methods: Sequence[str], reference: str | None) -> tuple[str, list[str
     return ref, [m for m in ordered if m != ref]
 
 
+PairTest = Callable[[np.ndarray, np.ndarray], dict[str, float] | None]
+
+
+def _against_reference(
+    frame: pd.DataFrame,
+    value: str,
+    reference: str | None,
+    by: Sequence[str],
+    test: PairTest,
+    cols: list[str],
+) -> pd.DataFrame:
+    """``test(ref values, other values)`` per condition and other method, Holm-corrected.
+
+    ``test`` returns the row's statistics (with ``p``; NaN when it cannot be computed) or
+    None to leave the pair out. Holm runs per condition over the finite p-values.
+    """
+    rows: list[dict[str, object]] = []
+    keys = list(by)
+    for cond, group in frame.groupby(keys, dropna=False, sort=True):
+        ref, others = _order(group["method"].dropna().unique().tolist(), reference)
+        a = group.loc[group["method"] == ref, value].dropna().to_numpy(dtype=float)
+        where = dict(zip(keys, cond if isinstance(cond, tuple) else (cond,), strict=True))
+        block: list[dict[str, object]] = []
+        for other in others:
+            b = group.loc[group["method"] == other, value].dropna().to_numpy(dtype=float)
+            result = test(a, b)
+            if result is not None:
+                block.append(
+                    {**where, "reference": ref, "method": other, "value": value,
+                     "n_ref": a.size, "n_other": b.size, **result, "p_holm": math.nan,
+                     "stars": ""}
+                )  # fmt: skip
+        finite = [r for r in block if math.isfinite(float(r["p"]))]  # type: ignore[arg-type]
+        if finite:
+            adjusted = multipletests([r["p"] for r in finite], method="holm")[1]
+            for r, ph in zip(finite, adjusted, strict=True):
+                r["p_holm"], r["stars"] = float(ph), stars(float(ph))
+        rows.extend(block)
+    return pd.DataFrame(rows, columns=cols)
+
+
+def _mann_whitney(a: np.ndarray, b: np.ndarray) -> dict[str, float] | None:
+    if a.size == 0 or b.size == 0:
+        return None
+    res = sps.mannwhitneyu(a, b, alternative="two-sided", method="asymptotic")
+    return {
+        "median_ref": float(np.median(a)),
+        "median_other": float(np.median(b)),
+        "u": float(res.statistic),
+        "p": float(res.pvalue),
+        "effect_rb": rank_biserial(float(res.statistic), a.size, b.size),
+    }
+
+
+def _welch(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    if a.size < 2 or b.size < 2:
+        return {"t": math.nan, "p": math.nan}
+    res = sps.ttest_ind(a, b, equal_var=False)
+    return {"t": float(res.statistic), "p": float(res.pvalue)}
+
+
 def compare_methods(
     samples: pd.DataFrame,
     value: str = "position_error_mm",
@@ -77,41 +138,9 @@ def compare_methods(
         *by, "reference", "method", "value", "n_ref", "n_other", "median_ref", "median_other",
         "u", "p", "p_holm", "effect_rb", "stars",
     ]  # fmt: skip
-    rows: list[dict[str, object]] = []
     if samples.empty:
         return pd.DataFrame(columns=cols)
-    keys = list(by)
-    for cond, group in samples.groupby(keys, dropna=False, sort=True):
-        ref, others = _order(group["method"].dropna().unique().tolist(), reference)
-        a = group.loc[group["method"] == ref, value].dropna().to_numpy()
-        block: list[dict[str, object]] = []
-        for other in others:
-            b = group.loc[group["method"] == other, value].dropna().to_numpy()
-            if a.size == 0 or b.size == 0:
-                continue
-            res = sps.mannwhitneyu(a, b, alternative="two-sided", method="asymptotic")
-            block.append(
-                {
-                    **dict(zip(keys, cond if isinstance(cond, tuple) else (cond,), strict=True)),
-                    "reference": ref,
-                    "method": other,
-                    "value": value,
-                    "n_ref": a.size,
-                    "n_other": b.size,
-                    "median_ref": float(np.median(a)),
-                    "median_other": float(np.median(b)),
-                    "u": float(res.statistic),
-                    "p": float(res.pvalue),
-                    "effect_rb": rank_biserial(float(res.statistic), a.size, b.size),
-                }
-            )
-        if block:
-            p_holm = multipletests([r["p"] for r in block], method="holm")[1]
-            for r, ph in zip(block, p_holm, strict=True):
-                r["p_holm"] = float(ph)
-                r["stars"] = stars(float(ph))
-        rows.extend(block)
-    return pd.DataFrame(rows, columns=cols)
+    return _against_reference(samples, value, reference, by, _mann_whitney, cols)
 
 
 def trial_tests(
@@ -125,35 +154,7 @@ def trial_tests(
     Holm-corrected within each condition. NaN where a method has fewer than two trials.
     """
     cols = [*by, "reference", "method", "value", "n_ref", "n_other", "t", "p", "p_holm", "stars"]
-    rows: list[dict[str, object]] = []
-    keys = list(by)
-    for cond, group in trials.groupby(keys, dropna=False, sort=True):
-        ref, others = _order(group["method"].dropna().unique().tolist(), reference)
-        a = group.loc[group["method"] == ref, value].dropna().to_numpy(dtype=float)
-        block: list[dict[str, object]] = []
-        for other in others:
-            b = group.loc[group["method"] == other, value].dropna().to_numpy(dtype=float)
-            t = p = math.nan
-            if a.size >= 2 and b.size >= 2:
-                res = sps.ttest_ind(a, b, equal_var=False)
-                t, p = float(res.statistic), float(res.pvalue)
-            block.append(
-                {
-                    **dict(zip(keys, cond if isinstance(cond, tuple) else (cond,), strict=True)),
-                    "reference": ref, "method": other, "value": value,
-                    "n_ref": a.size, "n_other": b.size, "t": t, "p": p,
-                }
-            )  # fmt: skip
-        finite = [i for i, r in enumerate(block) if math.isfinite(float(r["p"]))]  # type: ignore[arg-type]
-        adjusted = (
-            multipletests([block[i]["p"] for i in finite], method="holm")[1] if finite else []
-        )
-        for r in block:
-            r["p_holm"], r["stars"] = math.nan, ""
-        for i, ph in zip(finite, adjusted, strict=True):
-            block[i]["p_holm"], block[i]["stars"] = float(ph), stars(float(ph))
-        rows.extend(block)
-    return pd.DataFrame(rows, columns=cols)
+    return _against_reference(trials, value, reference, by, _welch, cols)
 
 
 def summarize(
