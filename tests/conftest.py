@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,12 @@ from magrun.field.lut import LookupTableFieldModel
 from magrun.field.reference import ReferenceMaps
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.robot import RobotParams, load_robot
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Compiled CasADi libraries go to this session's own cache (magrun.control.compiled)."""
+    os.environ["MAGRUN_CACHE_DIR"] = str(tmp_path_factory.mktemp("magrun-cache"))
 
 
 @pytest.fixture(scope="session")

@@ -87,7 +87,7 @@ def test_solver_failure_falls_back_and_never_breaks_limits(
     zernike_model, lut_model, rig: SimRig
 ) -> None:
     """IPOPT capped at 1 iteration fails every tick: zero currents first, then the shifted plan."""
-    cfg = ControlConfig(nmpc=replace(NMPCConfig(), max_iter=1))
+    cfg = ControlConfig(nmpc=replace(NMPCConfig(), solver="ipopt", compile=False, max_iter=1))
     c = make_controller("proposed", "magnet", cfg, zernike_model, lut_model)
     log = run_trial(c, rig, s_trajectory(), duration=1.0)
     assert_within_limits(log.currents)

@@ -11,10 +11,9 @@ I₀ … I_{N−1} and the predicted states X₁ … X_N (multiple shooting)::
 
 with e_{p,k} = (x_k, y_k) − (x_k^d, y_k^d) and e_{θ,k} the wrapped angle error, written
 ``atan2(sin Δ, cos Δ)`` (the paper's ``((Δ + π) mod 2π) − π``, smooth for the solver). X₀ is
-the estimate (its position projected into the workspace box). IPOPT solves it, warm-started
-from the previous solution shifted by one step.
+the estimate (its position projected into the workspace box).
 
-Units inside the NLP are scaled for the solver: positions in mm, velocities in mm/s, and
+Units inside the problem are scaled for the solver: positions in mm, velocities in mm/s, and
 currents as fractions of the limit, u = I / I_max. The weights are stated in those units:
 Qp and P per mm², qθ and qθ,N per rad², R and S per u².
 
@@ -24,6 +23,26 @@ means something with them: with currents in amperes instead (the same numbers pe
 current penalty 900 times heavier) the robot lags the S-trajectory by 1.7–1.9 mm RMS on the
 simulated rig; with normalised currents it tracks to a few hundredths of a millimetre.
 
+Two solvers for the same problem (``NMPCConfig.solver``)
+--------------------------------------------------------
+``"rti"`` (default): a Gauss–Newton real-time iteration. The cost is a sum of squared
+residuals, so its Gauss–Newton Hessian JᵀJ needs first derivatives only. Each tick linearises
+the dynamics and residuals around the previous plan shifted by one step and solves one
+structured QP with HPIPM (a Riccati-based interior point method for optimal control), with
+the stage structure passed explicitly: stage states sₖ = (Xₖ, u_{k−1}) (14), stage controls
+vₖ = uₖ − u_{k−1} (8), so the slew limit is a box on vₖ and every constraint is a box.
+A trial's first tick (no previous plan) iterates to convergence instead. Iterated to
+convergence on a fixed problem it reaches the same optimum as IPOPT (tests/test_nmpc.py).
+
+``"ipopt"``: the reference: the multiple-shooting NLP above solved to convergence by IPOPT
+with its exact Hessian, warm-started from the previous solution and multipliers shifted by
+one step. ``magrun bench nmpc`` measures both side by side.
+
+Both evaluate the field through the model's ``casadi_field_and_gradient`` (for the Zernike
+model its monomial form, :mod:`magrun.field.polynomial`), and both run compiled C
+(:mod:`magrun.control.compiled`: the RTI's per-stage functions, IPOPT's NLP callbacks),
+cached on disk.
+
 On failure (no convergence, non-finite output) the plan falls back to the
 previous plan's next currents ("shifted"), or to 0 A ("zero") when there is none; the
 controller's safety clamp then bounds the change.
@@ -31,15 +50,18 @@ controller's safety clamp then bounds the change.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import Any, Literal
 
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
 from magrun.control.base import ControllerStatus, Plan, Planner
+from magrun.control.compiled import compiled, shared_library
 from magrun.field.model import PlanarFieldModel
 from magrun.robot import RobotParams, casadi_step_function
 
@@ -48,6 +70,7 @@ FloatArray = NDArray[np.float64]
 #: NLP scaling of the state: mm, mm, rad, mm/s, mm/s, rad/s
 STATE_SCALE = np.array([1e-3, 1e-3, 1.0, 1e-3, 1e-3, 1.0])
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
+NX = 6
 
 
 @dataclass(frozen=True)
@@ -64,9 +87,16 @@ class NMPCConfig:
     q_angle_terminal: float = 100.0  # qθ,N, per rad²
     workspace_margin: float | None = None  # m; None: half the robot's length
     substeps: int = 2
+    solver: Literal["rti", "ipopt"] = "rti"
+    compile: bool = True  # compile the stage functions / NLP callbacks to C (cached)
+    # RTI: SQP iterations per tick (1 = real-time iteration) and on a trial's first tick
+    iterations: int = 1
+    first_tick_iterations: int = 30
+    step_tolerance: float = 1e-8  # stop the first tick's iterations below this step (∞-norm)
+    hpipm: dict[str, Any] = field(default_factory=dict)
+    # IPOPT
     max_iter: int = 100
     tol: float = 1e-6
-    expand: bool = True
     ipopt: dict[str, Any] = field(default_factory=dict)
 
 
@@ -80,57 +110,189 @@ class NMPC(Planner):
         config: NMPCConfig | None = None,
     ) -> None:
         self.config = cfg = config or NMPCConfig()
+        if cfg.solver not in ("rti", "ipopt"):
+            raise ValueError(f"unknown NMPC solver {cfg.solver!r}; choose rti or ipopt")
         self.model = field_model
         self.robot = robot
         coils = field_model.coils
-        self.n_currents = nI = coils.n_channels
+        self.n_currents = coils.n_channels
         self.max_current = coils.max_current
         self.max_change = coils.max_slew_rate * cfg.dt
         margin = robot.length / 2 if cfg.workspace_margin is None else cfg.workspace_margin
         self.position_bound = coils.workspace_half_width - margin
         self.step_function = casadi_step_function(
-            robot, field_model.casadi_field_and_gradient, nI, cfg.dt, cfg.substeps
+            robot, field_model.casadi_field_and_gradient, self.n_currents, cfg.dt, cfg.substeps
         )
-        self._build()
+        self.problem = OCP(self)
+        self.backend: _Backend = (
+            RTISolver(self.problem) if cfg.solver == "rti" else IpoptSolver(self.problem)
+        )
+        self._predict = self.problem.maybe_compiled(self.problem.step_scaled)
         self.reset()
 
-    # -- problem construction ------------------------------------------------------------------
+    # -- Planner API -----------------------------------------------------------------------------
 
-    def _build(self) -> None:
-        cfg, N, nI = self.config, self.config.horizon, self.n_currents
+    def reset(self) -> None:
+        self.backend.reset()
+
+    def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
+        X = self._predict(np.asarray(state) / STATE_SCALE, np.asarray(currents) / self.max_current)
+        return np.asarray(X, dtype=np.float64).ravel() * STATE_SCALE
+
+    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+        N = self.config.horizon
+        x0 = np.asarray(state, dtype=np.float64).copy()
+        x0[:2] = np.clip(x0[:2], -self.position_bound, self.position_bound)
+        ref = np.asarray(reference, dtype=np.float64)
+        if ref.shape != (N + 1, 3):
+            raise ValueError(f"reference must have shape ({N + 1}, 3), got {ref.shape}")
+        u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
+        t0 = time.perf_counter()
+        result = self.backend.solve(x0 / STATE_SCALE, u_prev, ref)
+        elapsed = time.perf_counter() - t0
+        if result.ok:
+            currents = result.u0 * self.max_current
+            predicted = self.predict(x0, currents)
+            status = ControllerStatus(elapsed, result.iterations, True, "", result.message)
+        else:
+            shifted = self.backend.fallback()
+            if shifted is not None:
+                currents, fallback = shifted * self.max_current, "shifted"
+            else:
+                currents, fallback = np.zeros(self.n_currents), "zero"
+            predicted = self.predict(x0, currents)
+            status = ControllerStatus(elapsed, result.iterations, False, fallback, result.message)
+        return Plan(currents, predicted, status)
+
+
+# --------------------------------------------------------------------------------------------
+# the problem, shared by both solvers
+
+
+class OCP:
+    """The optimal control problem in scaled units: dynamics, residuals, bounds."""
+
+    def __init__(self, nmpc: NMPC) -> None:
+        cfg = nmpc.config
+        self.config = cfg
+        self.N = cfg.horizon
+        self.nu = nu = nmpc.n_currents
+        self.max_current = nmpc.max_current
+        self.du_max = nmpc.max_change / nmpc.max_current  # slew bound on u per step
+        self.pos_max = nmpc.position_bound / 1e-3  # mm
         scale = ca.DM(STATE_SCALE)
-        x0 = ca.MX.sym("x0", 6)  # SI
-        I_prev = ca.MX.sym("u_prev", nI)  # I / I_max
-        ref = ca.MX.sym("ref", 3, N + 1)  # SI, columns k = 0 … N
-        Is = [ca.MX.sym(f"u{k}", nI) for k in range(N)]  # I / I_max
-        Xs = [ca.MX.sym(f"X{k + 1}", 6) for k in range(N)]  # scaled
+        X = ca.SX.sym("X", NX)  # scaled
+        u = ca.SX.sym("u", nu)  # I / I_max
+        X_next = nmpc.step_function(X * scale, u * nmpc.max_current) / scale
+        #: X_{k+1}(X_k, u_k), scaled
+        self.step_scaled = ca.Function("nmpc_step", [X, u], [X_next], ["X", "u"], ["X_next"])
+        # residuals: r = [√q (p − p_ref), √qθ wrap(θ − θ_ref)] for the pose, and
+        # [√R u, √S (u − u_prev)] for the currents; the cost is Σ |r|²
+        ref = ca.SX.sym("ref", 3)  # scaled: mm, mm, rad
+        self.pose_residual = {
+            "stage": self._pose_residual(X, ref, cfg.q_position, cfg.q_angle),
+            "terminal": self._pose_residual(X, ref, cfg.p_position, cfg.q_angle_terminal),
+        }
+        self._X, self._ref = X, ref
 
-        def pose_cost(X_scaled: Any, k: int, qp: float, qa: float) -> Any:
-            ep = X_scaled[:2] - ref[:2, k] / 1e-3
-            d = X_scaled[2] - ref[2, k]
-            return qp * ca.sumsqr(ep) + qa * ca.atan2(ca.sin(d), ca.cos(d)) ** 2
+    @staticmethod
+    def _pose_residual(X: Any, ref: Any, qp: float, qa: float) -> ca.Function:
+        d = X[2] - ref[2]
+        r = ca.vertcat(
+            np.sqrt(qp) * (X[:2] - ref[:2]), np.sqrt(qa) * ca.atan2(ca.sin(d), ca.cos(d))
+        )
+        return ca.Function("pose_residual", [X, ref], [r])
 
+    def maybe_compiled(self, function: ca.Function) -> ca.Function:
+        return compiled(function) if self.config.compile else function
+
+    def scaled_reference(self, ref: FloatArray) -> FloatArray:
+        """(N+1, 3) SI poses to (3, N+1) scaled columns."""
+        out = ref.T.copy()
+        out[:2] /= 1e-3
+        return out
+
+    def cost(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray, u: FloatArray) -> float:
+        """The objective for currents u (N, nu), states simulated from x0 (scaled): for tests."""
+        cfg = self.config
+        refs = self.scaled_reference(ref)
+        J, X, before = 0.0, x0, u_prev
+        for k in range(self.N):
+            if k > 0:
+                J += float(ca.sumsqr(self.pose_residual["stage"](X, refs[:, k])))
+            J += cfg.r_current * float(np.sum(u[k] ** 2))
+            J += cfg.s_current_change * float(np.sum((u[k] - before) ** 2))
+            X = np.asarray(self.step_scaled(X, u[k])).ravel()
+            before = u[k]
+        return J + float(ca.sumsqr(self.pose_residual["terminal"](X, refs[:, self.N])))
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    ok: bool
+    u0: FloatArray  # first currents, I / I_max
+    iterations: int
+    message: str
+
+
+class _Backend:
+    def reset(self) -> None:
+        raise NotImplementedError
+
+    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+        raise NotImplementedError
+
+    def fallback(self) -> FloatArray | None:
+        """The previous plan's next currents (and shift that plan), or None without one."""
+        raise NotImplementedError
+
+    def currents_plan(self) -> FloatArray | None:
+        """The last accepted plan's currents, shape (N, nu), scaled; None without one."""
+        raise NotImplementedError
+
+
+# --------------------------------------------------------------------------------------------
+# IPOPT reference
+
+
+class IpoptSolver(_Backend):
+    """The multiple-shooting NLP to convergence with IPOPT, exact Hessian, warm-started.
+
+    Decision vector: stage by stage (u_k, X_{k+1}), k = 0 … N−1. The NLP is built in MX with
+    the stage function as a call node, so CasADi's generated callbacks (objective, gradient,
+    constraint Jacobian, Lagrangian Hessian) hold each stage's derivative code once; they are
+    compiled to one shared library (:mod:`magrun.control.compiled`) and IPOPT loads it.
+    """
+
+    def __init__(self, ocp: OCP) -> None:
+        self.ocp = ocp
+        cfg, N, nu = ocp.config, ocp.N, ocp.nu
+        x0 = ca.MX.sym("x0", NX)  # scaled
+        u_prev = ca.MX.sym("u_prev", nu)
+        ref = ca.MX.sym("ref", 3, N + 1)  # scaled
+        us = [ca.MX.sym(f"u{k}", nu) for k in range(N)]
+        Xs = [ca.MX.sym(f"X{k + 1}", NX) for k in range(N)]
         J: Any = 0
         g, lbg, ubg = [], [], []
-        x_prev_si, I_before = x0, I_prev
+        X_before, u_before = x0, u_prev
+        stage_r, term_r = ocp.pose_residual["stage"], ocp.pose_residual["terminal"]
         for k in range(N):
             if k > 0:
-                J += pose_cost(Xs[k - 1], k, cfg.q_position, cfg.q_angle)
-            dI = Is[k] - I_before
-            J += cfg.r_current * ca.sumsqr(Is[k]) + cfg.s_current_change * ca.sumsqr(dI)
-            g.append((self.step_function(x_prev_si, Is[k] * self.max_current) / scale) - Xs[k])
-            lbg.append(np.zeros(6))
-            ubg.append(np.zeros(6))
-            g.append(dI)
-            lbg.append(np.full(nI, -self.max_change / self.max_current))
-            ubg.append(np.full(nI, self.max_change / self.max_current))
-            x_prev_si, I_before = Xs[k] * scale, Is[k]
-        J += pose_cost(Xs[-1], N, cfg.p_position, cfg.q_angle_terminal)
-
-        w = ca.vertcat(*[ca.vertcat(Is[k], Xs[k]) for k in range(N)])
-        p = ca.vertcat(x0, I_prev, ca.vec(ref))
+                J += ca.sumsqr(stage_r(X_before, ref[:, k]))
+            du = us[k] - u_before
+            J += cfg.r_current * ca.sumsqr(us[k]) + cfg.s_current_change * ca.sumsqr(du)
+            g += [ocp.step_scaled(X_before, us[k]) - Xs[k], du]
+            lbg += [np.zeros(NX), np.full(nu, -ocp.du_max)]
+            ubg += [np.zeros(NX), np.full(nu, ocp.du_max)]
+            X_before, u_before = Xs[k], us[k]
+        J += ca.sumsqr(term_r(X_before, ref[:, N]))
+        w = ca.vertcat(*[ca.vertcat(us[k], Xs[k]) for k in range(N)])
+        p = ca.vertcat(x0, u_prev, ca.vec(ref))
+        self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
+        stage_lb = np.concatenate([np.full(nu, -1.0), [-ocp.pos_max] * 2, [-np.inf] * 4])
+        self._lbx, self._ubx = np.tile(stage_lb, N), np.tile(-stage_lb, N)
+        self._stage = nu + NX
         opts: dict[str, Any] = {
-            "expand": cfg.expand,
             "print_time": False,
             "error_on_fail": False,
             "ipopt": {
@@ -143,70 +305,272 @@ class NMPC(Planner):
                 **cfg.ipopt,
             },
         }
-        self.solver = ca.nlpsol(
-            "nmpc", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}, opts
+        nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
+        solver = ca.nlpsol("nmpc_ipopt", "ipopt", nlp, opts)
+        library = self._compile(solver) if cfg.compile else None
+        self.solver = (
+            solver if library is None else ca.nlpsol("nmpc_ipopt", "ipopt", str(library), opts)
         )
-        self._lbg = np.concatenate(lbg)
-        self._ubg = np.concatenate(ubg)
-        stage_lb = np.concatenate(
-            [np.full(nI, -1.0), [-self.position_bound / 1e-3] * 2, [-np.inf] * 4]
+        warm = {
+            "warm_start_init_point": "yes",
+            "warm_start_bound_push": 1e-9,
+            "warm_start_bound_frac": 1e-9,
+            "warm_start_slack_bound_frac": 1e-9,
+            "warm_start_slack_bound_push": 1e-9,
+            "warm_start_mult_bound_push": 1e-9,
+            "mu_init": 1e-4,
+        }
+        warm_opts = {**opts, "ipopt": {**opts["ipopt"], **warm, **cfg.ipopt}}
+        self.warm_solver = (
+            ca.nlpsol("nmpc_ipopt", "ipopt", nlp, warm_opts)
+            if library is None
+            else ca.nlpsol("nmpc_ipopt", "ipopt", str(library), warm_opts)
         )
-        stage_ub = -stage_lb
-        self._lbx = np.tile(stage_lb, N)
-        self._ubx = np.tile(stage_ub, N)
-        self._stage = nI + 6
+        self.reset()
 
-    # -- Planner API -----------------------------------------------------------------------------
+    @staticmethod
+    def _compile(solver: ca.Function) -> Path | None:
+        def write(folder: Path) -> Path:
+            cwd = os.getcwd()
+            os.chdir(folder)  # generate_dependencies writes into the working directory
+            try:
+                return folder / solver.generate_dependencies("nmpc_ipopt.c")
+            finally:
+                os.chdir(cwd)
+
+        return shared_library("nmpc_ipopt", write, optimisation="-O1")
 
     def reset(self) -> None:
         self._w: FloatArray | None = None
+        self._lam_g: FloatArray | None = None
+        self._lam_x: FloatArray | None = None
 
-    def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
-        return np.asarray(self.step_function(state, currents), dtype=np.float64).ravel()
+    def _shift(self, v: FloatArray, width: int) -> FloatArray:
+        return np.concatenate([v[width:], v[-width:]])
 
-    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
-        N, nI, ns = self.config.horizon, self.n_currents, self._stage
-        x0 = np.asarray(state, dtype=np.float64).copy()
-        x0[:2] = np.clip(x0[:2], -self.position_bound, self.position_bound)
-        ref = np.asarray(reference, dtype=np.float64)
-        if ref.shape != (N + 1, 3):
-            raise ValueError(f"reference must have shape ({N + 1}, 3), got {ref.shape}")
-        w0 = self._initial_guess(x0, previous)
+    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+        ns, nu = self._stage, self.ocp.nu
+        p = np.concatenate([x0, u_prev, self.ocp.scaled_reference(ref).ravel(order="F")])
         args: dict[str, Any] = {
-            "x0": w0,
-            "p": np.concatenate([x0, previous / self.max_current, ref.ravel()]),
-            "lbx": self._lbx,
-            "ubx": self._ubx,
-            "lbg": self._lbg,
-            "ubg": self._ubg,
-        }
-        t0 = time.perf_counter()
-        sol = self.solver(**args)
-        elapsed = time.perf_counter() - t0
-        stats = self.solver.stats()
+            "p": p, "lbx": self._lbx, "ubx": self._ubx, "lbg": self._lbg, "ubg": self._ubg,
+        }  # fmt: skip
+        if self._w is None:
+            args["x0"] = np.tile(np.concatenate([u_prev, x0]), self.ocp.N)
+            solver = self.solver
+        else:
+            assert self._lam_g is not None
+            assert self._lam_x is not None
+            args["x0"] = self._shift(self._w, ns)
+            args["lam_x0"] = self._shift(self._lam_x, ns)
+            args["lam_g0"] = self._shift(self._lam_g, ns)
+            solver = self.warm_solver
+        sol = solver(**args)
+        stats = solver.stats()
         w = np.asarray(sol["x"], dtype=np.float64).ravel()
         message = str(stats.get("return_status", ""))
         ok = message in SUCCESS and bool(np.all(np.isfinite(w)))
-        iterations = int(stats.get("iter_count", 0))
         if ok:
             self._w = w
-            currents = w[:nI] * self.max_current
-            predicted = w[nI : nI + 6] * STATE_SCALE
-            status = ControllerStatus(elapsed, iterations, True, "", message)
-        else:
-            if self._w is not None:
-                currents, fallback = self._w[ns : ns + nI] * self.max_current, "shifted"
-                self._w = np.concatenate([self._w[ns:], self._w[-ns:]])
-            else:
-                currents, fallback = np.zeros(nI), "zero"
-            predicted = self.predict(x0, currents)
-            status = ControllerStatus(elapsed, iterations, False, fallback, message)
-        return Plan(currents, predicted, status)
+            self._lam_x = np.asarray(sol["lam_x"]).ravel()
+            self._lam_g = np.asarray(sol["lam_g"]).ravel()
+        return SolveResult(ok, w[:nu], int(stats.get("iter_count", 0)), message)
 
-    def _initial_guess(self, x0: FloatArray, previous: FloatArray) -> FloatArray:
-        """The previous solution shifted one step (last stage repeated); else hold and rest."""
-        ns = self._stage
-        if self._w is not None:
-            return np.concatenate([self._w[ns:], self._w[-ns:]])
-        stage = np.concatenate([previous / self.max_current, x0 / STATE_SCALE])
-        return np.tile(stage, self.config.horizon)
+    def fallback(self) -> FloatArray | None:
+        if self._w is None:
+            return None
+        ns, nu = self._stage, self.ocp.nu
+        self._w = self._shift(self._w, ns)
+        return self._w[:nu].copy()
+
+    def currents_plan(self) -> FloatArray | None:
+        if self._w is None:
+            return None
+        return self._w.reshape(self.ocp.N, self._stage)[:, : self.ocp.nu].copy()
+
+
+# --------------------------------------------------------------------------------------------
+# Gauss–Newton real-time iteration with HPIPM
+
+
+class RTISolver(_Backend):
+    """Gauss–Newton SQP on the stage-wise problem, one structured QP (HPIPM) per tick.
+
+    QP variables, in HPIPM's order: [v₀, s₁, v₁, s₂, …, v_{N−1}, s_N] (s₀ is fixed, so stage 0
+    has no state), with sₖ = (Xₖ, u_{k−1}) and vₖ = uₖ − u_{k−1}; constraints: the
+    linearised dynamics gaps only. One compiled function evaluates every stage's residuals,
+    Jacobians and dynamics gap around the current iterate and assembles H = JᵀJ, g = Jᵀr, the
+    gap rows and the step's bounds.
+    """
+
+    def __init__(self, ocp: OCP) -> None:
+        self.ocp = ocp
+        cfg, N, nu = ocp.config, ocp.N, ocp.nu
+        ns = NX + nu
+        self.ns, self.nz = ns, nu + (N - 1) * (ns + nu) + ns
+        # one stage: s = (X, u_prev), v = Δu; next state, its Jacobians, residuals, Jacobians
+        s = ca.SX.sym("s", ns)
+        v = ca.SX.sym("v", nu)
+        ref = ca.SX.sym("ref", 3)
+        X, up = s[:NX], s[NX:]
+        u = up + v
+        s_next = ca.vertcat(ocp.step_scaled(X, u), u)
+        r = ca.vertcat(
+            ocp.pose_residual["stage"](X, ref),
+            np.sqrt(cfg.r_current) * u,
+            np.sqrt(cfg.s_current_change) * v,
+        )
+        stage = ca.Function(
+            "rti_stage",
+            [s, v, ref],
+            [s_next, ca.jacobian(s_next, s), ca.jacobian(s_next, v), r,
+             ca.jacobian(r, s), ca.jacobian(r, v)],
+        )  # fmt: skip
+        rN = ocp.pose_residual["terminal"](X, ref)
+        terminal = ca.Function("rti_terminal", [s, ref], [rN, ca.jacobian(rN, s)])
+
+        # the whole QP, in MX over the stage function mapped along the horizon
+        z = ca.MX.sym("z", self.nz)
+        s0 = ca.MX.sym("s0", ns)
+        refs = ca.MX.sym("ref", 3, N + 1)
+        S, V = self._split(z)  # S: s₁ … s_N (ns × N), V: v₀ … v_{N−1} (nu × N)
+        S_from = ca.horzcat(s0, S[:, : N - 1])
+        fk, Ak, Bk, rk, Jsk, Jvk = stage.map(N)(S_from, V, refs[:, :N])
+        gaps = fk - S  # dynamics defects, ns × N
+        rT, JT = terminal(S[:, N - 1], refs[:, N])
+        H_blocks, g_blocks, A_rows = [], [], []
+        eye = ca.MX.eye(ns)
+        reg = 1e-9  # keeps H positive definite along the unweighted velocities
+        for k in range(N):
+            Jv = Jvk[:, k * nu : (k + 1) * nu]
+            rr = rk[:, k]
+            Jk = Jv if k == 0 else ca.horzcat(Jsk[:, k * ns : (k + 1) * ns], Jv)
+            H_blocks.append(ca.mtimes(Jk.T, Jk) + reg * ca.MX.eye(Jk.shape[1]))
+            g_blocks.append(ca.mtimes(Jk.T, rr))
+        H_blocks.append(ca.mtimes(JT.T, JT) + reg * eye)
+        g_blocks.append(ca.mtimes(JT.T, rT))
+        # gap rows: [A_k B_k −I] on (s_k, v_k, s_{k+1}); stage 0 has only v₀
+        col = 0
+        for k in range(N):
+            Bblock = Bk[:, k * nu : (k + 1) * nu]
+            if k == 0:
+                left = Bblock
+                width = nu
+            else:
+                left = ca.horzcat(Ak[:, k * ns : (k + 1) * ns], Bblock)
+                width = ns + nu
+            row = [ca.MX(ns, col), left, -eye, ca.MX(ns, self.nz - col - width - ns)]
+            A_rows.append(ca.horzcat(*[b for b in row if b.shape[1] > 0]))
+            col += width
+        H = ca.diagcat(*H_blocks)
+        g = ca.vertcat(*g_blocks)
+        A = ca.vertcat(*A_rows)
+        b = -ca.vec(gaps)  # A Δz = −gap
+        lb, ub = self._bounds()
+        qp = ca.Function(
+            "rti_qp", [z, s0, refs], [H, g, A, b, lb - z, ub - z],
+            ["z", "s0", "ref"], ["H", "g", "A", "b", "lbx", "ubx"],
+        )  # fmt: skip
+        self.qp_data = ocp.maybe_compiled(qp)
+        opts: dict[str, Any] = {
+            "N": N,
+            "nx": [0] + [ns] * N,
+            "nu": [nu] * N + [0],
+            "ng": [0] * (N + 1),
+            "error_on_fail": False,
+            # HPIPM bounds every variable; ±1e8 for "none" stalls its interior point method,
+            # ±1e4 (mm/s, rad/s: far beyond anything reachable) converges in ~5 iterations
+            "inf": 1e4,
+            "hpipm": {"iter_max": 50, "res_g_max": 1e-8, "res_b_max": 1e-8, "res_d_max": 1e-8,
+                      "res_m_max": 1e-8, **cfg.hpipm},
+        }  # fmt: skip
+        self.qp_solver = ca.conic(
+            "rti_hpipm", "hpipm", {"h": H.sparsity(), "a": A.sparsity()}, opts
+        )
+        self.reset()
+
+    def _split(self, z: Any) -> tuple[Any, Any]:
+        """(states s₁ … s_N as columns, controls v₀ … v_{N−1} as columns) of a QP vector."""
+        N, nu, ns = self.ocp.N, self.ocp.nu, self.ns
+        v0 = z[:nu]
+        rest = z[nu : nu + (N - 1) * (ns + nu)]
+        blocks = ca.reshape(rest, ns + nu, N - 1)
+        S = ca.horzcat(blocks[:ns, :], z[-ns:])
+        V = ca.horzcat(v0, blocks[ns:, :])
+        return S, V
+
+    def _bounds(self) -> tuple[FloatArray, FloatArray]:
+        ocp, nu, N = self.ocp, self.ocp.nu, self.ocp.N
+        v_lb = np.full(nu, -ocp.du_max)
+        s_lb = np.concatenate([[-ocp.pos_max] * 2, [-np.inf] * 4, np.full(nu, -1.0)])
+        lb = np.concatenate([v_lb] + [np.concatenate([s_lb, v_lb])] * (N - 1) + [s_lb])
+        return lb, -lb
+
+    # -- iterate layout helpers (NumPy) ----------------------------------------------------
+
+    def _pack(self, S: FloatArray, V: FloatArray) -> FloatArray:
+        """States (N, ns) and controls (N, nu) into the QP vector."""
+        parts = [V[0]]
+        for k in range(1, self.ocp.N):
+            parts += [S[k - 1], V[k]]
+        parts.append(S[-1])
+        return np.concatenate(parts)
+
+    def _unpack(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
+        N, nu, ns = self.ocp.N, self.ocp.nu, self.ns
+        mid = z[nu : nu + (N - 1) * (ns + nu)].reshape(N - 1, ns + nu)
+        S = np.vstack([mid[:, :ns], z[-ns:]])
+        V = np.vstack([z[:nu], mid[:, ns:]])
+        return S, V
+
+    def reset(self) -> None:
+        self._z: FloatArray | None = None
+
+    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+        cfg = self.ocp.config
+        s0 = np.concatenate([x0, u_prev])
+        refs = self.ocp.scaled_reference(ref)
+        if self._z is None:  # cold: hold the currents, rest at x0, iterate to convergence
+            N = self.ocp.N
+            z = self._pack(np.tile(s0, (N, 1)), np.zeros((N, self.ocp.nu)))
+            budget = max(cfg.first_tick_iterations, cfg.iterations)
+        else:
+            z = self._shifted(self._z)
+            budget = cfg.iterations
+        iterations, message = 0, ""
+        for _ in range(budget):
+            H, g, A, b, lbx, ubx = self.qp_data(z, s0, refs)
+            iterations += 1
+            if not all(np.all(np.isfinite(np.asarray(m.nonzeros()))) for m in (H, g, A, b)):
+                return SolveResult(False, np.zeros(self.ocp.nu), iterations, "non-finite QP")
+            try:
+                sol = self.qp_solver(h=H, g=g, a=A, lba=b, uba=b, lbx=lbx, ubx=ubx)
+            except RuntimeError as exc:  # an ill-posed QP (CasADi's checks)
+                return SolveResult(False, np.zeros(self.ocp.nu), iterations, str(exc)[-200:])
+            stats = self.qp_solver.stats()
+            message = str(stats.get("return_status", ""))
+            step = np.asarray(sol["x"], dtype=np.float64).ravel()
+            if not stats.get("success", False) or not np.all(np.isfinite(step)):
+                return SolveResult(False, np.zeros(self.ocp.nu), iterations, message or "failed")
+            z = z + step
+            if np.max(np.abs(step)) < cfg.step_tolerance:
+                break
+        self._z = z
+        _, V = self._unpack(z)
+        return SolveResult(True, u_prev + V[0], iterations, message)
+
+    def _shifted(self, z: FloatArray) -> FloatArray:
+        S, V = self._unpack(z)
+        return self._pack(np.vstack([S[1:], S[-1:]]), np.vstack([V[1:], np.zeros_like(V[:1])]))
+
+    def fallback(self) -> FloatArray | None:
+        if self._z is None:
+            return None
+        self._z = self._shifted(self._z)
+        S, _ = self._unpack(self._z)
+        return S[0, NX:].copy()  # u₀ of the shifted plan = u₁ of the old one
+
+    def currents_plan(self) -> FloatArray | None:
+        if self._z is None:
+            return None
+        S, _ = self._unpack(self._z)
+        return S[:, NX:].copy()  # s_{k+1} holds u_k

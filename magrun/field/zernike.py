@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from math import factorial
 from pathlib import Path
 from typing import Any
@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from magrun import atomic
 from magrun.field.coils import CoilSystem, CoilSystemSpec
 from magrun.field.model import PlanarFieldModel, weighted_sum
+from magrun.field.polynomial import PolynomialField
 
 
 @dataclass(frozen=True)
@@ -311,6 +312,28 @@ class ZernikeFieldModel(PlanarFieldModel):
         if missing:
             raise ValueError(f"no Zernike fit for driven coil types {sorted(missing)}")
         self.fits = fits
+
+    @property
+    def polynomial_degree(self) -> int:
+        """Highest total degree in x, y of the driven channels' fields (the highest order)."""
+        return max(self.fits[ch.coil_type].order for ch in self.coils.channels)
+
+    @cached_property
+    def polynomial(self) -> PolynomialField:
+        """The same model as one polynomial in the workspace frame (:mod:`.polynomial`)."""
+        return PolynomialField.from_model(self)
+
+    def casadi_field_and_gradient(self, position: Any, currents: Any) -> tuple[Any, Any]:
+        """The CasADi form from :attr:`polynomial`, the cheapest to evaluate and differentiate.
+
+        The term-by-term form remains :meth:`casadi_field_and_gradient_terms`; the two agree to
+        rounding (tests/test_models.py).
+        """
+        return self.polynomial.casadi_field_and_gradient(position, currents)
+
+    def casadi_field_and_gradient_terms(self, position: Any, currents: Any) -> tuple[Any, Any]:
+        """The CasADi form summed term by term over Zernike polynomials and channels."""
+        return super().casadi_field_and_gradient(position, currents)
 
     def type_field(
         self, coil_type: str, q: NDArray[np.float64]

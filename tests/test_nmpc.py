@@ -1,0 +1,215 @@
+"""The fast NMPC: polynomial field form, compiled functions, and RTI vs the IPOPT reference.
+
+The RTI solver and IPOPT solve the same optimal control problem by different methods
+(Gauss–Newton SQP with HPIPM QPs vs an interior point method with the exact Hessian). On fixed
+problems, the RTI iterated to convergence must reach IPOPT's optimum; these tests check the
+currents plan and the objective, with constraints inactive and active.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from magrun.control import compiled as compiled_mod
+from magrun.control.nmpc import NMPC, STATE_SCALE, NMPCConfig
+from magrun.field.polynomial import PolynomialField, exponents, monomials
+
+# -- the polynomial form of the Zernike model ---------------------------------------------------
+
+
+def test_polynomial_form_equals_the_zernike_model(zernike_model, rng) -> None:
+    """Same field and gradient as the term-by-term Zernike model, to rounding (1e-10 relative)."""
+    poly = zernike_model.polynomial
+    assert poly.degree == 9
+    assert poly.coefficients.shape == (2, len(exponents(9)), 8)
+    p = rng.uniform(-0.05, 0.05, (500, 2))
+    currents = rng.uniform(-30, 30, (500, 8))
+    B0, G0 = zernike_model.field_and_gradient(p, currents)
+    B1, G1 = poly.field_and_gradient(p, currents)
+    assert_allclose(B1, B0, rtol=0, atol=1e-10 * np.abs(B0).max())
+    assert_allclose(G1, G0, rtol=0, atol=1e-10 * np.abs(G0).max())
+
+
+def test_polynomial_gradient_matches_finite_differences(zernike_model, rng) -> None:
+    poly = zernike_model.polynomial
+    p, currents, h = rng.uniform(-0.03, 0.03, 2), rng.uniform(-30, 30, 8), 1e-6
+    _, G = poly.field_and_gradient(p, currents)
+    for axis in range(2):
+        e = np.zeros(2)
+        e[axis] = h
+        Bp, _ = poly.field_and_gradient(p + e, currents)
+        Bm, _ = poly.field_and_gradient(p - e, currents)
+        assert_allclose(G[:, axis], (Bp - Bm) / (2 * h), rtol=1e-6, atol=1e-9)
+
+
+def test_polynomial_casadi_form_equals_the_term_form(zernike_model, rng) -> None:
+    p, I = ca.SX.sym("p", 2), ca.SX.sym("I", 8)
+    fast = ca.Function("f", [p, I], list(zernike_model.casadi_field_and_gradient(p, I)))
+    slow = ca.Function("s", [p, I], list(zernike_model.casadi_field_and_gradient_terms(p, I)))
+    assert fast.n_instructions() < slow.n_instructions() * 0.6
+    for _ in range(5):
+        x, c = rng.uniform(-0.05, 0.05, 2), rng.uniform(-30, 30, 8)
+        for a, b in zip(fast(x, c), slow(x, c), strict=True):
+            a, b = np.asarray(a), np.asarray(b)
+            assert_allclose(a, b, rtol=0, atol=1e-11 * np.abs(b).max())
+
+
+def test_polynomial_form_refuses_a_model_that_is_not_a_polynomial(lut_model) -> None:
+    with pytest.raises(ValueError, match="not a polynomial of degree 4"):
+        PolynomialField.from_model(lut_model, degree=4)
+    with pytest.raises(ValueError, match="states no polynomial degree"):
+        PolynomialField.from_model(lut_model)
+
+
+def test_monomials_order() -> None:
+    x, y = np.array([2.0]), np.array([3.0])
+    expected = [2.0**i * 3.0**j for i, j in exponents(3)]
+    assert_allclose(monomials(x, y, 3)[0], expected)
+    assert exponents(2) == [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
+
+
+# -- compiled functions and their cache ---------------------------------------------------------
+
+
+def _square() -> ca.Function:
+    x = ca.SX.sym("x", 3)
+    return ca.Function("magrun_test_square", [x], [ca.sin(x) * x])
+
+
+def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path))
+    f = _square()
+    fc = compiled_mod.compiled(f)
+    libraries = list((tmp_path / "casadi").glob("magrun_test_square-*.so"))
+    assert len(libraries) == 1
+    x = np.array([0.3, -1.2, 2.0])
+    assert_allclose(np.asarray(fc(x)).ravel(), np.sin(x) * x, rtol=1e-15)
+    stamp = libraries[0].stat().st_mtime_ns
+    compiled_mod.compiled(_square())  # same code: the cached library, not a rebuild
+    assert libraries[0].stat().st_mtime_ns == stamp
+    assert len(list((tmp_path / "casadi").glob("*.so"))) == 1
+    y = ca.SX.sym("x", 3)
+    compiled_mod.compiled(ca.Function("magrun_test_square", [y], [ca.cos(y) * y]))
+    assert len(list((tmp_path / "casadi").glob("*.so"))) == 2  # new code, new key
+
+
+def test_without_a_compiler_functions_run_uncompiled(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("MAGRUN_COMPILE", "0")
+    monkeypatch.setattr(compiled_mod, "_warned", False)
+    f = _square()
+    with pytest.warns(compiled_mod.CompileWarning, match="uncompiled"):
+        g = compiled_mod.compiled(f)
+    assert g is f
+    assert not (tmp_path / "casadi").exists()
+
+
+# -- RTI vs the IPOPT reference on fixed problems -----------------------------------------------
+
+
+CONVERGE = {"first_tick_iterations": 60, "step_tolerance": 1e-10}
+
+
+def _problem(kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(state, reference window (21, 3), previous currents) of a fixed test problem."""
+    ref = np.zeros((21, 3))
+    state = np.zeros(6)
+    previous = np.zeros(8)
+    if kind == "track":  # a gentle move: no constraint active
+        ref[:, 0] = np.linspace(0, 2e-3, 21)
+        ref[:, 2] = 0.2
+    elif kind == "slew":  # a step target from rest: the slew limit binds on the first steps
+        ref[:, 0] = 0.006
+        ref[:, 2] = math.radians(20)
+    elif kind == "wall":  # a target outside the workspace box: the position bound binds
+        ref[:, 0] = 0.06
+        state[:3] = [0.035, 0.0, 0.0]
+    return state, ref, previous
+
+
+def _solve(model, robot, solver: str, kind: str) -> tuple[NMPC, np.ndarray]:
+    cfg = NMPCConfig(solver=solver, tol=1e-10, **CONVERGE)  # type: ignore[arg-type]
+    if solver == "ipopt":
+        cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
+    nmpc = NMPC(model, robot, cfg)
+    state, ref, previous = _problem(kind)
+    plan = nmpc.plan(state, ref, previous)
+    assert plan.status.success, plan.status
+    currents = nmpc.backend.currents_plan()
+    assert currents is not None
+    assert_allclose(currents[0] * nmpc.max_current, plan.currents, atol=1e-12)
+    return nmpc, currents
+
+
+@pytest.mark.parametrize("kind", ["track", "slew", "wall"])
+def test_rti_converges_to_the_ipopt_optimum(zernike_model, magnet_robot, kind: str) -> None:
+    """Whole current plans agree within 1e-4 of the limit, objectives within 1e-6 relative."""
+    rti, u_rti = _solve(zernike_model, magnet_robot, "rti", kind)
+    ipopt, u_ipopt = _solve(zernike_model, magnet_robot, "ipopt", kind)
+    assert_allclose(u_rti, u_ipopt, atol=1e-4)
+    state, ref, previous = _problem(kind)
+    x0 = state.copy()
+    x0[:2] = np.clip(x0[:2], -rti.position_bound, rti.position_bound)
+    args = (x0 / STATE_SCALE, previous / rti.max_current, ref)
+    J_rti, J_ipopt = rti.problem.cost(*args, u_rti), ipopt.problem.cost(*args, u_ipopt)
+    assert J_rti == pytest.approx(J_ipopt, rel=1e-6)
+    if kind == "slew":  # the constraint the test is about is active
+        du = np.diff(np.vstack([previous / rti.max_current, u_rti]), axis=0)
+        assert np.max(np.abs(du)) == pytest.approx(rti.problem.du_max, abs=1e-6)
+    if kind == "wall":
+        S, _ = rti.backend._unpack(rti.backend._z)
+        assert np.max(S[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
+
+
+def test_rti_on_the_lookup_tables_reaches_the_ipopt_optimum(lut_model, magnet_robot) -> None:
+    """Baseline 5's model through the same two solvers: same optimum."""
+    _, u_rti = _solve(lut_model, magnet_robot, "rti", "track")
+    _, u_ipopt = _solve(lut_model, magnet_robot, "ipopt", "track")
+    assert_allclose(u_rti, u_ipopt, atol=1e-4)
+
+
+def test_rti_falls_back_on_a_failed_qp(zernike_model, magnet_robot) -> None:
+    """A non-finite QP gives the previous plan's next currents, then zero without a plan."""
+    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig())
+    state, ref, previous = _problem("track")
+    first = nmpc.plan(state, ref, previous)
+    assert first.status.success
+    planned = nmpc.backend.currents_plan()
+    assert planned is not None
+    bad = state.copy()
+    bad[0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        second = nmpc.plan(bad, ref, first.currents)
+    assert not second.status.success
+    assert second.status.fallback == "shifted"
+    assert_allclose(second.currents, planned[1] * nmpc.max_current)
+    nmpc.reset()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        third = nmpc.plan(bad, ref, previous)
+    assert third.status.fallback == "zero"
+    assert_allclose(third.currents, 0.0)
+
+
+def test_rti_prediction_is_the_model_step(zernike_model, magnet_robot) -> None:
+    """The plan's predicted state is one exact model step of the applied currents."""
+    from magrun.robot import discrete_step
+
+    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig())
+    state, ref, previous = _problem("track")
+    plan = nmpc.plan(state, ref, previous)
+
+    def field(x: float, y: float):
+        B, G = zernike_model.field_and_gradient(np.array([x, y]), plan.currents)
+        return B, G
+
+    expected = discrete_step(tuple(state), field, magnet_robot, 0.04, 2)
+    assert_allclose(plan.predicted_state, expected, rtol=1e-9, atol=1e-15)
