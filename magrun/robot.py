@@ -53,6 +53,7 @@ FloatArray = NDArray[np.float64]
 Expr = Any
 
 NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, exp=np.exp)
+MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, exp=math.exp)  # Python floats: fastest
 CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, exp=ca.exp)
 STATE_NAMES = ("x", "y", "theta", "vx", "vy", "omega")
 

@@ -222,6 +222,17 @@ def test_renderer_is_seeded_and_noisy_frames_differ() -> None:
     assert f1.shape == (256, 256, 3)
 
 
+def test_sensor_noise_has_the_configured_spread_in_every_channel() -> None:
+    """Two frames of the same scene differ by noise of std √2·σ per channel (σ = 0.02 of 255)."""
+    cfg = replace(CLEAN, noise=0.02)
+    r = Renderer(Camera(cfg), load_robot("magnet"), seed=4)
+    pose = [0.04, 0.04, 0.0]  # a corner: mostly flat background
+    d = r.render(pose).astype(float) - r.render(pose).astype(float)
+    std = d.reshape(-1, 3).std(axis=0) / 255
+    assert_allclose(std, math.sqrt(2) * 0.02, rtol=0.05)  # uint8 rounding adds ~1 %
+    assert_allclose(d.reshape(-1, 3).mean(axis=0) / 255, 0.0, atol=1e-3)
+
+
 def test_robot_out_of_view_renders_an_empty_frame(robots) -> None:
     cam = Camera(CLEAN)
     empty = Renderer(cam, robots["magnet"]).render([1.0, 1.0, 0.0])

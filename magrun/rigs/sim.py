@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import partial
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid
 from magrun.rigs.base import Observation, Rig, clamp_currents
-from magrun.robot import RobotParams, discrete_step, load_robot
+from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
 from magrun.scene import Walls
 from magrun.tracking.camera import Camera, CameraConfig
 from magrun.tracking.render import Renderer
@@ -123,6 +124,7 @@ class SimRig(Rig):
         self._renderer: Renderer | None = None
         self._contact_radius = robot.diameter / 2
         self._half_axis = max(robot.length / 2 - self._contact_radius, 0.0)
+        self._reach = self._half_axis + self._contact_radius  # farthest body point from centre
         self.reset([0.0, 0.0, 0.0])
 
     @classmethod
@@ -150,6 +152,7 @@ class SimRig(Rig):
         self.driven = np.zeros(self.coils.n_channels)  # what the amplifiers drive now
         self.target = np.zeros(self.coils.n_channels)  # what they ramp toward
         self._contact = False
+        self._clear = (p[0], p[1], -math.inf)  # broad phase: check the walls on the next step
         if self.camera is not None:  # the same frames (lighting, noise) on every reset
             self._renderer = Renderer(self.camera, self.robot, self.walls, seed=self.seed)
 
@@ -177,15 +180,36 @@ class SimRig(Rig):
             nxt = clamp_currents(self.target, self.driven, self.max_current, ramp)
             drive = 0.5 * (self.driven + nxt) * self.coil_gains
             self.driven = nxt
-            state = discrete_step(state, partial(self._field, drive), self.robot, h, substeps=1)
-            state, touched = self.walls.resolve_capsule(
-                state, self._half_axis, self._contact_radius,
-                self.robot.drag_perpendicular, self.robot.drag_rotation,
-            )  # fmt: skip
-            if touched:
-                self._contact = True
+            state = discrete_step(
+                state, partial(self._field, drive), self.robot, h, substeps=1, ops=MATH_OPS
+            )
+            if self._near_wall(state[0], state[1]):
+                state, touched = self.walls.resolve_capsule(
+                    state, self._half_axis, self._contact_radius,
+                    self.robot.drag_perpendicular, self.robot.drag_rotation,
+                )  # fmt: skip
+                if touched:
+                    self._contact = True
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
 
-    def _field(self, currents: FloatArray, x: float, y: float) -> tuple[FloatArray, FloatArray]:
-        return self.grid.field(x, y, currents)
+    def _near_wall(self, x: float, y: float) -> bool:
+        """Whether the body may touch a wall: a broad phase before the exact contact test.
+
+        Every point of the body lies within ``reach`` (half length) of its centre, whatever
+        its heading, so a centre at distance d from every wall cannot touch one until it has
+        moved d − reach. The walls' distances are recomputed only once it may have.
+        """
+        cx, cy, slack = self._clear
+        if math.hypot(x - cx, y - cy) < slack:
+            return False
+        if self.walls.segments.size == 0:
+            d = math.inf
+        else:
+            d = float(np.min(self.walls.distances((x, y)))) - self._reach
+        self._clear = (x, y, d)
+        return d <= 0
+
+    def _field(self, currents: FloatArray, x: float, y: float) -> tuple[list[float], Any]:
+        v = (currents @ self.grid.unit(x, y)).tolist()  # Python floats for MATH_OPS
+        return v[:2], (v[2:4], v[4:6])
