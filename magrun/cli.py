@@ -909,53 +909,145 @@ def bench() -> None:
 
 
 @bench.command("nmpc")
-@click.option("--ticks", default=60, show_default=True, help="Closed-loop ticks per model.")
+@click.option(
+    "--ticks", type=int, default=None, help="Closed-loop ticks per variant [default: the whole S]."
+)
+@click.option(
+    "--variant",
+    "variants",
+    multiple=True,
+    type=click.Choice(["proposed", "proposed_ipopt_reference", "b5_lut", "b5_lut_ipopt"]),
+    help="Variants to run (repeatable) [default: all four].",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
-def bench_nmpc(ticks: int, as_json: bool) -> None:
-    """NMPC solve time on the Zernike model (proposed) and the lookup tables (Baseline 5).
+def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> None:
+    """NMPC solve times and closed-loop tracking, fast solver vs the IPOPT reference.
 
-    Both run the first TICKS ticks of the S-trajectory closed loop on the simulated rig, one
-    after the other in this process; the figures are per-solve wall times.
+    Each variant (proposed: Gauss-Newton RTI + HPIPM on the Zernike model;
+    proposed_ipopt_reference: IPOPT to convergence, same problem; b5_lut / b5_lut_ipopt: the
+    same two on the lookup tables) runs the S-trajectory closed loop on the simulated rig,
+    one after the other, pinned to one core. The first run on a machine also compiles the
+    solvers' C code (about a minute for each IPOPT variant; cached, see README).
     """
-    from magrun.control.methods import make_controller
-    from magrun.loop import run_trial
-    from magrun.rigs.sim import SimRig
-    from magrun.scene import s_trajectory
+    from magrun.bench import NMPC_VARIANTS
+    from magrun.bench import bench_nmpc as run
 
-    if ticks < 2:
+    if ticks is not None and ticks < 2:
         raise InputError("--ticks must be at least 2")
-    out: dict[str, Any] = {"ticks": ticks, "horizon": 20, "dt_s": 0.04}
-    for method, model in (("proposed", "zernike"), ("baseline5", "lookup_table")):
-        t0 = time.perf_counter()
-        controller = make_controller(method)
-        build = time.perf_counter() - t0
-        log = run_trial(controller, SimRig.default(seed=0), s_trajectory(), duration=ticks * 0.04)
-        solve = log.solve_times[1:]  # the first solve starts cold
-        out[model] = {
-            "method": method,
-            "build_s": build,
-            "median_solve_ms": float(np.median(solve) * 1e3),
-            "p90_solve_ms": float(np.percentile(solve, 90) * 1e3),
-            "max_solve_ms": float(np.max(solve) * 1e3),
-            "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
-            "failed_solves": sum(not s.success for s in log.status),
-            "achievable_rate_hz": float(1.0 / np.median(solve)),
-        }
-    out["ratio_lookup_table_to_zernike"] = (
-        out["lookup_table"]["median_solve_ms"] / out["zernike"]["median_solve_ms"]
-    )
+    chosen = variants or tuple(NMPC_VARIANTS)
+    out = run(ticks, chosen, progress=None if as_json else _say("running"))
     if as_json:
         click.echo(json.dumps(out))
-    else:
-        for model in ("zernike", "lookup_table"):
-            r = out[model]
-            click.echo(
-                f"{model:>12}: median {r['median_solve_ms']:.1f} ms,"
-                f" p90 {r['p90_solve_ms']:.1f} ms,"
-                f" {r['median_iterations']:.0f} iterations, {r['achievable_rate_hz']:.1f} Hz,"
-                f" build {r['build_s']:.1f} s"
-            )
-        click.echo(f"lookup table / Zernike: {out['ratio_lookup_table_to_zernike']:.2f}")
+        return
+    for name, r in out["variants"].items():
+        click.echo(
+            f"{name:>25}: median {r['median_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms,"
+            f" max {r['max_ms']:.2f} ms, {r['median_iterations']:.0f} it,"
+            f" RMS {r['rms_position_mm']:.4f} mm / {r['rms_orientation_deg']:.3f} deg,"
+            f" build {r['build_s']:.1f} s"
+        )
+    for key in ("speedup_vs_ipopt", "p99_speedup_vs_ipopt", "b5_speedup_vs_ipopt"):
+        if key in out:
+            click.echo(f"{key}: {out[key]:.1f}x")
+    if "rms_position_vs_ipopt" in out:
+        click.echo(f"RMS position vs IPOPT: {100 * out['rms_position_vs_ipopt']:+.2f} %")
+
+
+@bench.command("recorder")
+@click.option("--seconds", default=5.0, show_default=True, help="Length of the throughput run.")
+@click.option("--fps", default=200.0, show_default=True, help="Camera frames per second offered.")
+@click.option("--width", default=1280, show_default=True, help="Frame width, px.")
+@click.option("--height", default=1024, show_default=True, help="Frame height, px.")
+@click.option(
+    "--compression",
+    type=click.Choice(["lz4", "zstd", "none"]),
+    default="lz4",
+    show_default=True,
+    help="MCAP chunk compression.",
+)
+@click.option(
+    "--dir",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Where the scratch recordings go (deleted after) [default: the system temp dir].",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_recorder(
+    seconds: float,
+    fps: float,
+    width: int,
+    height: int,
+    compression: str,
+    out_dir: Path | None,
+    as_json: bool,
+) -> None:
+    """Raw camera frames into MCAP at FPS with poses and currents; logging's cost per tick."""
+    from magrun.bench import bench_recorder as run
+
+    if seconds <= 0 or fps <= 0 or width < 16 or height < 16:
+        raise InputError("--seconds and --fps must be positive, --width/--height at least 16")
+    out = run(seconds, fps, width, height, None if out_dir is None else str(out_dir), compression)
+    if as_json:
+        click.echo(json.dumps(out))
+        return
+    t, c = out["throughput"], out["tick_cost"]
+    click.echo(
+        f"throughput: {t['frames_written']}/{t['frames_offered']} frames of {out['frame']},"
+        f" {t['ticks_dropped']} dropped, {t['sustained_fps']:.0f} fps sustained,"
+        f" {t['mcap_mb_per_s']:.0f} MB/s"
+    )
+    click.echo(
+        f"tick cost: p99 {c['p99_bare_ms']:.2f} ms bare, {c['p99_logging_ms']:.2f} ms logging"
+        f" (+{c['p99_added_ms']:.2f} ms)"
+    )
+
+
+@bench.command("campaign")
+@click.argument("protocols", nargs=-1, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--jobs", default=2, show_default=True, help="Trials run in parallel.")
+@click.option("--quick", is_flag=True, help="The protocols' --quick sets instead of full ones.")
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Keep the recordings here (replacing its protocol folders) [default: a temp dir].",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_campaign(
+    protocols: tuple[Path, ...], jobs: int, quick: bool, out: Path | None, as_json: bool
+) -> None:
+    """The paper's campaign: PROTOCOLS [default: protocols/*.yaml] with recordings, timed."""
+    import tempfile
+
+    from magrun.bench import bench_campaign as run
+
+    files = [str(p) for p in protocols] or sorted(str(p) for p in Path("protocols").glob("*.yaml"))
+    if not files:
+        raise InputError("no protocols given and none in ./protocols")
+    _load_protocols(tuple(Path(f) for f in files))  # all valid before anything runs
+    if jobs < 1:
+        raise InputError("--jobs must be at least 1")
+    with tempfile.TemporaryDirectory(prefix="magrun-campaign-") as tmp:
+        target = str(out) if out is not None else tmp
+        result = run(files, target, jobs, quick, progress=None if as_json else _say("running"))
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    for name, r in [*result["protocols"].items(), ("total", result["total"])]:
+        click.echo(
+            f"{name:>18}: {r['trials']} trials in {r['wall_s'] / 60:.1f} min"
+            f" ({r['trials_per_min']:.1f}/min), {r['failed']} failed,"
+            f" {r['dropped_ticks']} dropped, {r['overrun_ticks']} overruns,"
+            f" {r['recordings_mb']:.0f} MB"
+        )
+
+
+def _say(prefix: str) -> Any:
+    def say(what: str) -> None:
+        click.echo(f"{prefix} {what} ...", err=True)
+
+    return say
 
 
 def main() -> None:

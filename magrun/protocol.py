@@ -205,6 +205,23 @@ class RecordingSettings(_Strict):
         1, description="Record every n-th camera frame (0: none)."
     )
     jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 90
+    image_format: Literal["jpeg", "raw"] = Field(
+        "jpeg",
+        description=(
+            "MCAP camera frames as JPEG (foxglove.CompressedImage) or uncompressed "
+            "(foxglove.RawImage, mono8/rgb8): raw keeps every pixel and sustains high frame rates."
+        ),
+    )
+    rerun_image_every: Annotated[int, Field(ge=1)] = Field(
+        1,
+        description=(
+            "Of the recorded frames, put every n-th in the .rrd too (raw frames at a high rate "
+            "would swamp it; the MCAP keeps them all)."
+        ),
+    )
+    compression: Literal["zstd", "lz4", "none"] = Field(
+        "zstd", description="MCAP chunk compression (lz4: cheapest on CPU for raw frames)."
+    )
 
 
 class QuickSettings(_Strict):

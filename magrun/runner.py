@@ -198,6 +198,9 @@ def execute_trial(
             camera=the_rig.camera,
             image_every=protocol.recording.image_every,
             jpeg_quality=protocol.recording.jpeg_quality,
+            image_format=protocol.recording.image_format,
+            rerun_image_every=protocol.recording.rerun_image_every,
+            compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
         )
         recorder = TrialRecorder(base, setup).start()

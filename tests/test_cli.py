@@ -201,16 +201,26 @@ def test_control_verbs_reject_bad_input(runner: CliRunner, args: list[str], mess
     assert "Traceback" not in result.output
 
 
-def test_bench_nmpc_json(runner: CliRunner) -> None:
-    result = runner.invoke(cli, ["bench", "nmpc", "--ticks", "3", "--json"])
+@pytest.mark.filterwarnings("ignore::magrun.control.compiled.CompileWarning")
+def test_bench_nmpc_json(runner: CliRunner, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every variant's figures, and the ratios computed from them (uncompiled: quick to build)."""
+    monkeypatch.setenv("MAGRUN_COMPILE", "0")
+    variants = ["proposed", "proposed_ipopt_reference", "b5_lut"]
+    args = ["bench", "nmpc", "--ticks", "3", "--json"]
+    result = runner.invoke(cli, args + [f"--variant={v}" for v in variants])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
-    for model in ("zernike", "lookup_table"):
-        assert doc[model]["median_solve_ms"] > 0
-        assert doc[model]["failed_solves"] == 0
-    assert doc["ratio_lookup_table_to_zernike"] == pytest.approx(
-        doc["lookup_table"]["median_solve_ms"] / doc["zernike"]["median_solve_ms"]
-    )
+    assert list(doc["variants"]) == variants
+    for name in variants:
+        r = doc["variants"][name]
+        assert r["ticks"] == 3
+        assert 0 < r["median_ms"] <= r["p90_ms"] <= r["p99_ms"] <= r["max_ms"]
+        assert r["failed_solves"] == 0
+        assert r["rms_position_mm"] >= 0
+    ref, fast = doc["variants"]["proposed_ipopt_reference"], doc["variants"]["proposed"]
+    assert doc["speedup_vs_ipopt"] == pytest.approx(ref["median_ms"] / fast["median_ms"])
+    assert doc["machine"]["logical_cores"] >= 1
+    assert "b5_speedup_vs_ipopt" not in doc  # its IPOPT variant did not run
 
 
 def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:

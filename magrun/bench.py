@@ -1,0 +1,336 @@
+"""Benchmarks behind ``magrun bench``: each returns one JSON-ready dict of measured figures.
+
+Every figure in a result comes from the same run on the same machine (described under
+``machine``), so ratios between variants are side by side; timings on these shared machines
+vary from run to run, ratios much less. Nothing here asserts a speed: the test suite checks
+correctness, these functions measure.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+#: NMPC variants: name → (method, solver)
+NMPC_VARIANTS: dict[str, tuple[str, str]] = {
+    "proposed": ("proposed", "rti"),
+    "proposed_ipopt_reference": ("proposed", "ipopt"),
+    "b5_lut": ("baseline5", "rti"),
+    "b5_lut_ipopt": ("baseline5", "ipopt"),
+}
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on."""
+    import casadi
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {
+        "cpu": cpu,
+        "logical_cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "casadi": casadi.CasadiMeta.version(),
+        "platform": platform.platform(),
+    }
+
+
+@contextmanager
+def one_core() -> Iterator[int | None]:
+    """Pin this process to one core (Linux) for the duration; yields the core or None."""
+    if not hasattr(os, "sched_getaffinity"):
+        yield None
+        return
+    before = os.sched_getaffinity(0)
+    core = max(before)
+    os.sched_setaffinity(0, {core})
+    try:
+        yield core
+    finally:
+        os.sched_setaffinity(0, before)
+
+
+def _ms(values: np.ndarray, q: float) -> float:
+    return float(np.percentile(values, q) * 1e3)
+
+
+def bench_nmpc(
+    ticks: int | None = None,
+    variants: tuple[str, ...] = tuple(NMPC_VARIANTS),
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Per-solve times and closed-loop tracking of the NMPC variants on one core.
+
+    Each variant runs the paper's S-trajectory (43 mm, 3 mm/s; the first ``ticks`` ticks, or
+    all of it plus 1 s of hold) closed loop on the simulated rig with perfect feedback and no
+    latency charged, so tracking differences come from the solver alone. Solve times are the
+    planner's wall time per tick, the first (cold, iterated to convergence) excluded.
+    """
+    from magrun.control.methods import ControlConfig, make_controller
+    from magrun.loop import run_trial
+    from magrun.rigs.sim import SimRig
+    from magrun.scene import s_trajectory
+
+    unknown = set(variants) - set(NMPC_VARIANTS)
+    if unknown:
+        raise ValueError(f"unknown variants {sorted(unknown)}; known: {', '.join(NMPC_VARIANTS)}")
+    reference = s_trajectory()
+    base = ControlConfig()
+    duration = None if ticks is None else (ticks - 1) * base.dt  # ticks at 0, dt, …
+    out: dict[str, Any] = {
+        "benchmark": "nmpc",
+        "horizon": base.nmpc.horizon,
+        "dt_s": base.dt,
+        "coils": 8,
+        "trajectory": "S, 43 mm, 3 mm/s, perfect feedback, no latency charged",
+        "machine": machine(),
+        "variants": {},
+    }
+    with one_core() as core:
+        out["pinned_core"] = core
+        for name in variants:
+            method, solver = NMPC_VARIANTS[name]
+            if progress is not None:
+                progress(name)
+            cfg = replace(base, nmpc=replace(base.nmpc, solver=solver))  # type: ignore[arg-type]
+            t0 = time.perf_counter()
+            controller = make_controller(method, "magnet", cfg)
+            build = time.perf_counter() - t0
+            log = run_trial(controller, SimRig.default(seed=0), reference, duration=duration)
+            solve = log.solve_times[1:]
+            out["variants"][name] = {
+                "method": method,
+                "model": "lookup_table" if method == "baseline5" else "zernike",
+                "solver": "Gauss-Newton RTI + HPIPM" if solver == "rti" else "IPOPT (converged)",
+                "build_s": build,
+                "ticks": len(log.t),
+                "median_ms": _ms(solve, 50),
+                "p90_ms": _ms(solve, 90),
+                "p99_ms": _ms(solve, 99),
+                "max_ms": float(np.max(solve) * 1e3),
+                "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
+                "failed_solves": sum(not s.success for s in log.status),
+                "achievable_rate_hz": float(1.0 / np.median(solve)),
+                "rms_position_mm": log.rms_position_mm,
+                "rms_orientation_deg": log.rms_orientation_deg,
+            }
+    v = out["variants"]
+    if "proposed" in v and "proposed_ipopt_reference" in v:
+        fast, ref = v["proposed"], v["proposed_ipopt_reference"]
+        out["speedup_vs_ipopt"] = ref["median_ms"] / fast["median_ms"]
+        out["p99_speedup_vs_ipopt"] = ref["p99_ms"] / fast["p99_ms"]
+        out["rms_position_vs_ipopt"] = fast["rms_position_mm"] / ref["rms_position_mm"] - 1.0
+    if "b5_lut" in v and "b5_lut_ipopt" in v:
+        out["b5_speedup_vs_ipopt"] = v["b5_lut_ipopt"]["median_ms"] / v["b5_lut"]["median_ms"]
+    return out
+
+
+def _camera_frames(width: int, height: int, n: int, seed: int = 0) -> list[np.ndarray]:
+    """``n`` 8-bit mono frames like a fluoroscope's: smooth shading, a dark body, sensor noise."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    base = 140 + 40 * np.sin(u / width * 3.1) * np.cos(v / height * 2.3)
+    frames = []
+    for k in range(n):
+        img = base.copy()
+        cx, cy = width * (0.3 + 0.4 * k / n), height / 2
+        img[(u - cx) ** 2 / 900 + (v - cy) ** 2 / 100 < 1] = 40
+        img += rng.normal(0, 4, img.shape).astype(np.float32)
+        frames.append(np.clip(img, 0, 255).astype(np.uint8))
+    return frames
+
+
+def bench_recorder(
+    seconds: float = 5.0,
+    fps: float = 200.0,
+    width: int = 1280,
+    height: int = 1024,
+    out_dir: str | None = None,
+    compression: str = "lz4",
+) -> dict[str, Any]:
+    """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
+    of logging to the control tick.
+
+    Phase 1 (throughput): a producer paced at ``fps`` hands the :class:`TrialRecorder` a tick
+    per frame (a raw ``width`` × ``height`` mono8 frame, six poses, eight currents, a status)
+    for ``seconds``; the figures are frames written and dropped, the writer's sustained rate
+    (frames over the time until the file is finished) and MB/s. The .rrd gets every 20th frame.
+
+    Phase 2 (tick cost): the same control tick — one proposed-NMPC solve on a fixed problem —
+    runs 400 times without a recorder, then 400 times logging each tick (frames as in phase 1)
+    to a recorder whose writer thread is busy; the figure is the p99 tick time of each and
+    their difference.
+    """
+    import tempfile
+    from pathlib import Path
+
+    from magrun.control.base import ControllerStatus
+    from magrun.control.methods import make_controller
+    from magrun.loop import Tick
+    from magrun.recording import RecordingSetup, TrialRecorder
+
+    frames = _camera_frames(width, height, 8)
+    names = tuple(f"coil{i}" for i in range(8))
+    status = ControllerStatus(0.0015, 1, True, "", "0")
+
+    def tick(k: int) -> Tick:
+        pose = np.array([1e-3 * math.sin(k / 50), 1e-3 * math.cos(k / 50), k / 1000])
+        return Tick(
+            k=k, t=k / fps, actual=pose, tracked=pose, measured=pose, estimated=pose,
+            predicted=pose, desired=pose, currents=np.full(8, 0.1 * (k % 7)), status=status,
+            compute_time=0.0015, frame=frames[k % len(frames)],
+        )  # fmt: skip
+
+    def setup() -> RecordingSetup:
+        return RecordingSetup(
+            trial={"protocol": "bench", "method": "none"},
+            channel_names=names,
+            image_format="raw",
+            rerun_image_every=20,
+            compression=compression,
+        )
+
+    out: dict[str, Any] = {
+        "benchmark": "recorder",
+        "machine": machine(),
+        "frame": f"{width}x{height} mono8 (foxglove.RawImage)",
+        "target_fps": fps,
+        "seconds": seconds,
+        "compression": compression,
+    }
+    with tempfile.TemporaryDirectory(dir=out_dir, prefix="magrun-bench-") as tmp:
+        # phase 1: sustained throughput
+        n = int(seconds * fps)
+        rec = TrialRecorder(Path(tmp) / "throughput", setup(), queue_size=512).start()
+        start = time.perf_counter()
+        for k in range(n):
+            delay = start + k / fps - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            rec.log(tick(k))
+        produced = time.perf_counter() - start
+        stats = rec.close()
+        finished = time.perf_counter() - start
+        size = rec.mcap_path.stat().st_size
+        out["throughput"] = {
+            "frames_offered": n,
+            "frames_written": stats.images,
+            "ticks_dropped": stats.dropped_ticks,
+            "producer_s": produced,
+            "finished_s": finished,
+            "sustained_fps": stats.images / finished,
+            "mcap_mb": size / 1e6,
+            "mcap_mb_per_s": size / 1e6 / finished,
+            "error": stats.error,
+        }
+        # phase 2: what logging adds to a control tick
+        controller = make_controller("proposed")
+        ref = np.zeros((21, 3))
+        ref[:, 0] = np.linspace(0, 2e-3, 21)
+        controller.reset(np.zeros(3))
+
+        def control_tick() -> None:
+            controller.step(np.zeros(3), ref)
+
+        def timed(log: Callable[[Tick], None] | None, ticks: int = 400) -> np.ndarray:
+            times = np.empty(ticks)
+            period = 1.0 / fps
+            begin = time.perf_counter()
+            for k in range(ticks):
+                delay = begin + k * period - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+                t0 = time.perf_counter()
+                control_tick()
+                if log is not None:
+                    log(tick(k))
+                times[k] = time.perf_counter() - t0
+            return times
+
+        timed(None, 50)  # warm up
+        bare = timed(None)
+        rec = TrialRecorder(Path(tmp) / "tick_cost", setup(), queue_size=512).start()
+        logged = timed(rec.log)
+        stats = rec.close()
+        out["tick_cost"] = {
+            "ticks": len(bare),
+            "rate_hz": fps,
+            "p50_bare_ms": _ms(bare, 50),
+            "p99_bare_ms": _ms(bare, 99),
+            "p50_logging_ms": _ms(logged, 50),
+            "p99_logging_ms": _ms(logged, 99),
+            "p99_added_ms": _ms(logged, 99) - _ms(bare, 99),
+            "ticks_dropped": stats.dropped_ticks,
+        }
+    return out
+
+
+def bench_campaign(
+    protocol_files: list[str],
+    out: str,
+    jobs: int = 2,
+    quick: bool = False,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Run the protocols one after the other with ``jobs`` processes, recordings written.
+
+    Figures per protocol and in total: trials, wall time, trials per minute, failed trials,
+    dropped recorder ticks, control ticks that overran their period, and the recordings' size.
+    """
+    from pathlib import Path
+
+    from magrun.protocol import load_protocol
+    from magrun.runner import run_protocol
+
+    result: dict[str, Any] = {
+        "benchmark": "campaign",
+        "machine": machine(),
+        "jobs": jobs,
+        "quick": quick,
+        "protocols": {},
+    }
+    total_start = time.perf_counter()
+    for path in protocol_files:
+        protocol = load_protocol(path)
+        if progress is not None:
+            progress(protocol.name)
+        t0 = time.perf_counter()
+        manifest = run_protocol(protocol, out, quick=quick, jobs=jobs, overwrite=True)
+        wall = time.perf_counter() - t0
+        trials = manifest["trials"]
+        folder = Path(out) / protocol.name
+        size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+        result["protocols"][protocol.name] = {
+            "trials": len(trials),
+            "wall_s": wall,
+            "trials_per_min": len(trials) / wall * 60,
+            "failed": sum(t["status"] != "ok" for t in trials),
+            "dropped_ticks": sum(int(t.get("dropped_ticks") or 0) for t in trials),
+            "overrun_ticks": sum(int(t.get("overruns") or 0) for t in trials),
+            "ticks": sum(int(t.get("ticks") or 0) for t in trials),
+            "recordings_mb": size / 1e6,
+        }
+    wall = time.perf_counter() - total_start
+    rows = result["protocols"].values()
+    result["total"] = {
+        "trials": sum(r["trials"] for r in rows),
+        "wall_s": wall,
+        "trials_per_min": sum(r["trials"] for r in rows) / wall * 60,
+        "failed": sum(r["failed"] for r in rows),
+        "dropped_ticks": sum(r["dropped_ticks"] for r in rows),
+        "overrun_ticks": sum(r["overrun_ticks"] for r in rows),
+        "recordings_mb": sum(r["recordings_mb"] for r in rows),
+    }
+    return result
