@@ -540,7 +540,8 @@ class RTISolver(_Backend):
         for _ in range(budget):
             H, g, A, b, lbx, ubx = self.qp_data(z, s0, refs)
             iterations += 1
-            if not all(np.all(np.isfinite(np.asarray(m.nonzeros()))) for m in (H, g, A, b)):
+            # a non-finite state or model reaches the gradient and the gaps (H alone cannot be)
+            if not (np.all(np.isfinite(np.asarray(g))) and np.all(np.isfinite(np.asarray(b)))):
                 return SolveResult(False, np.zeros(self.ocp.nu), iterations, "non-finite QP")
             try:
                 sol = self.qp_solver(h=H, g=g, a=A, lba=b, uba=b, lbx=lbx, ubx=ubx)

@@ -175,11 +175,17 @@ class SimRig(Rig):
         h = duration / n
         ramp = self.max_slew_rate * h
         state = tuple(self.state)
+        ramping = not np.array_equal(self.driven, self.target)
+        held = self.target * self.coil_gains
         for _ in range(n):
             # amplifiers ramp at the slew limit; the step uses the current at its midpoint
-            nxt = clamp_currents(self.target, self.driven, self.max_current, ramp)
-            drive = 0.5 * (self.driven + nxt) * self.coil_gains
-            self.driven = nxt
+            if ramping:
+                nxt = clamp_currents(self.target, self.driven, self.max_current, ramp)
+                drive = 0.5 * (self.driven + nxt) * self.coil_gains
+                self.driven = nxt
+                ramping = not np.array_equal(nxt, self.target)
+            else:  # the amplifiers have reached the target (the usual case): hold it
+                drive = held
             state = discrete_step(
                 state, partial(self._field, drive), self.robot, h, substeps=1, ops=MATH_OPS
             )

@@ -2,13 +2,14 @@
 
 ::
 
-    frame ─ 80 px window at the previous pose ─► UNet ─► 3 heat maps ─► candidate peaks
+    frame ─ window at the previous pose ─► UNet ─► 3 heat maps ─► candidate peaks
             (whole frame when there is none)                               │
     (x, y, θ), confidence ◄─ rigid fit ◄─ camera px → m ◄─ consistent tail, centre, head
 
-The tracker runs the UNet on a ``window_px``-square window (default 80 px, 32 mm; the model
-trained on 96 px crops) centred on the previous pose: the robot moves at most ~1 mm between
-frames, and the window keeps the per-frame cost low whatever the frame size. With no
+The tracker runs the UNet on a ``window_px``-square window (by default the robot's length
+plus 12 px each side: 64 px, 25.6 mm, for the magnet robot; the model trained on 96 px crops)
+centred on the previous pose: the robot moves at most ~1 mm between frames, and the window
+keeps the per-frame cost low whatever the frame size. With no
 previous pose (first frame, or the robot was lost) it searches the whole frame with the
 same, fully convolutional network, then refines in a window. Each heat map may offer a few
 peaks; :func:`select_keypoints` takes the strongest three that form the robot. A result is
@@ -21,6 +22,7 @@ tail-to-head span is not within 25 % of the robot's length.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
@@ -129,6 +131,10 @@ def fuse_batch_norm(model: KeypointUNet) -> nn.Module:
     return fused.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
 
 
+#: border kept around the robot in the tracking window, px at the model's scale
+WINDOW_MARGIN_PX = 12
+
+
 class Tracker:
     """UNet keypoint tracker for one robot seen by one camera.
 
@@ -142,10 +148,13 @@ class Tracker:
         The tracked robot (its length fixes the fiducials' spacing).
     min_confidence : float
         Smallest accepted heat-map peak.
-    window_px : int
-        Side of the window tracked around the previous pose (a multiple of 8), px. It must
-        hold the robot (the magnet robot is 40 px long at 2.5 px/mm) plus its motion
-        between frames.
+    window_px : int, optional
+        Side of the window tracked around the previous pose (a multiple of the UNet's stride),
+        px at the model's scale. It must hold the robot at any heading plus a margin for the
+        network's border (:data:`WINDOW_MARGIN_PX` each side) and its motion between frames
+        (under 1 px). Default: the robot's length plus the margins, rounded up to the stride
+        (64 px for the 16 mm magnet robot, 48 px for the 7.4 mm capsule at 2.5 px/mm). The
+        UNet's cost grows with the window's area.
     model_px_per_mm : float
         The scale the model was trained at. Frames at another scale (a real camera) are
         resized to it before tracking; results are reported in the frame's own pixels.
@@ -157,7 +166,7 @@ class Tracker:
         camera: Camera,
         robot: RobotParams,
         min_confidence: float = 0.3,
-        window_px: int = 80,
+        window_px: int | None = None,
         model_px_per_mm: float = DEFAULT_CAMERA.px_per_mm,
     ) -> None:
         self.net = fuse_batch_norm(model)
@@ -178,6 +187,9 @@ class Tracker:
         )  # fmt: skip
         self.robot = robot
         self.min_confidence = min_confidence
+        if window_px is None:
+            length_px = robot.length * 1e3 * model_px_per_mm
+            window_px = self.stride * math.ceil((length_px + 2 * WINDOW_MARGIN_PX) / self.stride)
         if window_px % self.stride or window_px < 4 * self.stride:
             raise ValueError(f"window_px must be a multiple of {self.stride}, ≥ {4 * self.stride}")
         self.window_px = window_px
