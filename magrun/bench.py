@@ -159,6 +159,7 @@ def bench_recorder(
     height: int = 1024,
     out_dir: str | None = None,
     compression: str = "lz4",
+    ticks: int = 400,
 ) -> dict[str, Any]:
     """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
     of logging to the control tick.
@@ -169,9 +170,9 @@ def bench_recorder(
     (frames over the time until the file is finished) and MB/s. The .rrd gets every 20th frame.
 
     Phase 2 (tick cost): the same control tick — one proposed-NMPC solve on a fixed problem —
-    runs 400 times without a recorder, then 400 times logging each tick (frames as in phase 1)
-    to a recorder whose writer thread is busy; the figure is the p99 tick time of each and
-    their difference.
+    runs ``ticks`` times at ``fps`` without a recorder, then ``ticks`` times logging each tick
+    (frames as in phase 1) to a recorder whose writer thread is busy; the figures are the p99
+    tick times of each and their difference.
     """
     import tempfile
     from pathlib import Path
@@ -244,7 +245,7 @@ def bench_recorder(
         def control_tick() -> None:
             controller.step(np.zeros(3), ref)
 
-        def timed(log: Callable[[Tick], None] | None, ticks: int = 400) -> np.ndarray:
+        def timed(log: Callable[[Tick], None] | None, ticks: int = ticks) -> np.ndarray:
             times = np.empty(ticks)
             period = 1.0 / fps
             begin = time.perf_counter()
@@ -259,7 +260,7 @@ def bench_recorder(
                 times[k] = time.perf_counter() - t0
             return times
 
-        timed(None, 50)  # warm up
+        timed(None, min(50, ticks))  # warm up
         bare = timed(None)
         rec = TrialRecorder(Path(tmp) / "tick_cost", setup(), queue_size=512).start()
         logged = timed(rec.log)

@@ -972,6 +972,7 @@ def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> N
     default=None,
     help="Where the scratch recordings go (deleted after) [default: the system temp dir].",
 )
+@click.option("--ticks", default=400, show_default=True, help="Control ticks per tick-cost phase.")
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
 def bench_recorder(
     seconds: float,
@@ -980,14 +981,18 @@ def bench_recorder(
     height: int,
     compression: str,
     out_dir: Path | None,
+    ticks: int,
     as_json: bool,
 ) -> None:
     """Raw camera frames into MCAP at FPS with poses and currents; logging's cost per tick."""
     from magrun.bench import bench_recorder as run
 
-    if seconds <= 0 or fps <= 0 or width < 16 or height < 16:
-        raise InputError("--seconds and --fps must be positive, --width/--height at least 16")
-    out = run(seconds, fps, width, height, None if out_dir is None else str(out_dir), compression)
+    if seconds <= 0 or fps <= 0 or width < 16 or height < 16 or ticks < 10:
+        raise InputError(
+            "--seconds and --fps must be positive, --width/--height at least 16, --ticks 10"
+        )
+    folder = None if out_dir is None else str(out_dir)
+    out = run(seconds, fps, width, height, folder, compression, ticks)
     if as_json:
         click.echo(json.dumps(out))
         return

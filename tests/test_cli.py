@@ -309,3 +309,45 @@ def test_tracker_run_on_an_image_folder(runner: CliRunner, tmp_path) -> None:
     result = runner.invoke(cli, ["tracker", "run", str(empty), "--px-per-mm", "4"])
     assert result.exit_code == 2
     assert "no images" in result.output
+
+
+def test_bench_recorder_json(runner: CliRunner) -> None:
+    args = ["bench", "recorder", "--seconds", "0.2", "--fps", "50", "--width", "64"]
+    result = runner.invoke(cli, [*args, "--height", "48", "--ticks", "20", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    t, c = doc["throughput"], doc["tick_cost"]
+    assert t["frames_offered"] == 10
+    assert t["frames_written"] == 10
+    assert t["ticks_dropped"] == 0
+    assert t["error"] == ""
+    assert t["sustained_fps"] == pytest.approx(10 / t["finished_s"])
+    assert c["ticks"] == 20
+    assert c["p99_added_ms"] == pytest.approx(c["p99_logging_ms"] - c["p99_bare_ms"])
+
+
+def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
+    tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
+    args = ["bench", "campaign", str(tiny), "--jobs", "1", "--out", str(tmp_path), "--json"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    row = doc["protocols"]["tiny"]
+    assert row["trials"] == 4
+    assert row["failed"] == 0
+    assert row["trials_per_min"] == pytest.approx(row["trials"] / row["wall_s"] * 60)
+    assert doc["total"]["trials"] == 4
+    assert len(list((tmp_path / "tiny").rglob("*.mcap"))) == 4
+
+
+def test_bench_campaign_checks_every_protocol_before_running(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: bad\nmethods: [nmpc9]\n")
+    args = ["bench", "campaign", str(tiny), str(bad), "--out", str(tmp_path / "out")]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 2
+    assert "bad.yaml" in result.output
+    assert not (tmp_path / "out").exists()

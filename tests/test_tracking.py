@@ -448,3 +448,11 @@ def test_bad_annotations_name_file_line_and_column(tmp_path) -> None:
     p.write_text("image,tail_u\n")
     with pytest.raises(ValueError, match=r"bad\.csv:1: missing column"):
         load_annotations(p)
+
+
+@pytest.mark.parametrize(("robot", "window"), [("magnet", 64), ("drug_delivery", 48)])
+def test_default_window_is_the_robot_plus_margins(robot: str, window: int) -> None:
+    """Length at 2.5 px/mm plus 12 px each side, up to the stride: 40 + 24 → 64, 18.5 + 24 → 48."""
+    tracker = Tracker.default(Camera(), load_robot(robot))
+    assert tracker.window_px == window
+    assert tracker.window_px % tracker.stride == 0

@@ -1,0 +1,100 @@
+"""The trial recorder on its own: batched Rerun series, raw frames, chunk compression."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+from rerun.chunk import RrdReader
+
+from magrun.control.base import ControllerStatus
+from magrun.loop import Tick
+from magrun.recording import RecordingSetup, TrialRecorder, raw_image
+from magrun.tracking.camera import Camera
+
+STATUS = ControllerStatus(0.001, 1, True, "", "0")
+
+
+def _ticks(n: int, frame: np.ndarray | None, dt: float = 0.04) -> list[Tick]:
+    ticks = []
+    for k in range(n):
+        pose = np.array([1e-3 * k, -1e-3 * k, 0.01 * k])
+        tick = Tick(
+            k=k, t=k * dt, actual=pose, tracked=None if k % 5 == 4 else pose,
+            measured=pose if k % 3 == 0 else None, estimated=pose, predicted=pose,
+            desired=pose, currents=np.full(8, float(k)), status=STATUS, compute_time=0.002,
+            frame=frame,
+        )  # fmt: skip
+        ticks.append(tick)
+    return ticks
+
+
+def _record(base: Path, setup: RecordingSetup, ticks: list[Tick]) -> TrialRecorder:
+    with TrialRecorder(base, setup) as rec:
+        for tick in ticks:
+            rec.log(tick)
+    assert rec.stats.error == ""
+    assert rec.stats.dropped_ticks == 0
+    return rec
+
+
+def _rrd_rows(path: Path) -> Counter[str]:
+    rows: Counter[str] = Counter()
+    for chunk in RrdReader(path).stream():
+        if not chunk.is_static:
+            rows[str(chunk.entity_path)] += chunk.num_rows
+    return rows
+
+
+def test_rerun_series_hold_one_row_per_tick(tmp_path: Path) -> None:
+    """Rows sent in columns (every second and at close) add up to one per tick and stream."""
+    n = 60  # 2.4 s at 25 Hz: two periodic flushes and the final one
+    setup = RecordingSetup(trial={"method": "x"}, channel_names=tuple("abcdefgh"), camera=Camera())
+    rec = _record(tmp_path / "t", setup, _ticks(n, None))
+    rows = _rrd_rows(rec.rrd_path)
+    assert rows["/workspace/actual"] == n
+    assert rows["/coils/currents"] == n
+    assert rows["/errors/position_mm"] == n
+    assert rows["/workspace/tracked"] == n - n // 5  # lost on every 5th tick
+    assert rows["/workspace/measured"] == math.ceil(n / 3)
+    assert rows["/camera/measured"] == math.ceil(n / 3)
+    assert "/camera/tracked" not in rows  # drawn over the image: actual, predicted, measured
+
+
+def test_raw_frames_round_trip_with_lz4_and_decimated_rerun_images(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    frame = rng.integers(0, 256, (48, 64), dtype=np.uint8)
+    setup = RecordingSetup(
+        trial={"method": "x"}, channel_names=tuple("abcdefgh"), image_format="raw",
+        rerun_image_every=4, compression="lz4",
+    )  # fmt: skip
+    n = 10
+    rec = _record(tmp_path / "raw", setup, _ticks(n, frame))
+    with rec.mcap_path.open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None
+        assert {c.compression for c in summary.chunk_indexes} == {"lz4"}
+        images = [
+            m for _, ch, _, m in reader.iter_decoded_messages() if ch.topic == "/camera/image"
+        ]
+    assert len(images) == n
+    for img in images:
+        assert (img.width, img.height, img.encoding, img.step) == (64, 48, "mono8", 64)
+        assert np.array_equal(np.frombuffer(img.data, np.uint8).reshape(48, 64), frame)
+    assert _rrd_rows(rec.rrd_path)["/camera/image"] == math.ceil(n / 4)
+
+
+def test_raw_image_takes_rgb_and_refuses_other_layouts() -> None:
+    rgb = np.zeros((4, 5, 3), dtype=np.uint8)
+    msg = raw_image(rgb, 7)
+    assert (msg.encoding, msg.step, len(msg.data)) == ("rgb8", 15, 60)
+    assert msg.timestamp.nanos == 7
+    for bad in (np.zeros((4, 5), np.uint16), np.zeros((4, 5, 4), np.uint8), np.zeros(3, np.uint8)):
+        with pytest.raises(ValueError, match="raw frames must be uint8"):
+            raw_image(bad, 0)
