@@ -159,7 +159,7 @@ def bench_recorder(
     height: int = 1024,
     out_dir: str | None = None,
     compression: str = "lz4",
-    ticks: int = 400,
+    ticks: int = 1000,
 ) -> dict[str, Any]:
     """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
     of logging to the control tick.
@@ -170,9 +170,9 @@ def bench_recorder(
     (frames over the time until the file is finished) and MB/s. The .rrd gets every 20th frame.
 
     Phase 2 (tick cost): the same control tick — one proposed-NMPC solve on a fixed problem —
-    runs ``ticks`` times at ``fps`` without a recorder, then ``ticks`` times logging each tick
-    (frames as in phase 1) to a recorder whose writer thread is busy; the figures are the p99
-    tick times of each and their difference.
+    runs ``ticks`` times at ``fps`` without logging and ``ticks`` times logging each tick
+    (frames as in phase 1) to a recorder whose writer thread is busy, alternating in blocks of
+    a tenth; the figures are the p99 tick times of each and their difference.
     """
     import tempfile
     from pathlib import Path
@@ -245,26 +245,35 @@ def bench_recorder(
         def control_tick() -> None:
             controller.step(np.zeros(3), ref)
 
-        def timed(log: Callable[[Tick], None] | None, ticks: int = ticks) -> np.ndarray:
-            times = np.empty(ticks)
-            period = 1.0 / fps
+        period = 1.0 / fps
+
+        def timed(log: Callable[[Tick], None] | None, n: int, k0: int) -> list[float]:
+            times = []
             begin = time.perf_counter()
-            for k in range(ticks):
+            for k in range(n):
                 delay = begin + k * period - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)
                 t0 = time.perf_counter()
                 control_tick()
                 if log is not None:
-                    log(tick(k))
-                times[k] = time.perf_counter() - t0
+                    log(tick(k0 + k))
+                times.append(time.perf_counter() - t0)
             return times
 
-        timed(None, min(50, ticks))  # warm up
-        bare = timed(None)
+        timed(None, min(50, ticks), 0)  # warm up
+        # the two conditions alternate in blocks, so a change in the machine's load meets both
+        block = max(ticks // 10, 1)
+        bare_times: list[float] = []
+        logged_times: list[float] = []
         rec = TrialRecorder(Path(tmp) / "tick_cost", setup(), queue_size=512).start()
-        logged = timed(rec.log)
+        while len(bare_times) < ticks:
+            n = min(block, ticks - len(bare_times))
+            bare_times += timed(None, n, 0)
+            logged_times += timed(rec.log, n, len(logged_times))
+            time.sleep(0.05)  # let the writer drain before the next bare block
         stats = rec.close()
+        bare, logged = np.array(bare_times), np.array(logged_times)
         out["tick_cost"] = {
             "ticks": len(bare),
             "rate_hz": fps,

@@ -972,7 +972,7 @@ def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> N
     default=None,
     help="Where the scratch recordings go (deleted after) [default: the system temp dir].",
 )
-@click.option("--ticks", default=400, show_default=True, help="Control ticks per tick-cost phase.")
+@click.option("--ticks", default=1000, show_default=True, help="Control ticks per tick-cost phase.")
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
 def bench_recorder(
     seconds: float,

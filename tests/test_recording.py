@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader
 
 from magrun.control.base import ControllerStatus
 from magrun.loop import Tick
-from magrun.recording import RecordingSetup, TrialRecorder, raw_image
+from magrun.recording import RecordingSetup, TrialRecorder, raw_image, raw_image_bytes
 from magrun.tracking.camera import Camera
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")
@@ -98,3 +98,13 @@ def test_raw_image_takes_rgb_and_refuses_other_layouts() -> None:
     for bad in (np.zeros((4, 5), np.uint16), np.zeros((4, 5, 4), np.uint8), np.zeros(3, np.uint8)):
         with pytest.raises(ValueError, match="raw frames must be uint8"):
             raw_image(bad, 0)
+
+
+@pytest.mark.parametrize("shape", [(48, 64), (3, 5, 3), (300, 200)])
+def test_raw_image_bytes_parse_to_the_protobuf_message(shape: tuple[int, ...]) -> None:
+    """The hand-assembled wire format decodes to exactly what protobuf serialises."""
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    frame = np.random.default_rng(2).integers(0, 256, shape, dtype=np.uint8)
+    ours = RawImage.FromString(raw_image_bytes(frame, 123_456_789_012))
+    assert ours == raw_image(frame, 123_456_789_012)
