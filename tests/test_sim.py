@@ -165,3 +165,37 @@ def test_capsule_contact_removes_only_the_velocity_into_the_wall() -> None:
     assert out[3] == pytest.approx(0.0, abs=1e-12)  # into the wall: gone
     assert out[4] == pytest.approx(0.003)  # along the wall: kept
     assert out[2] == pytest.approx(np.pi / 2)  # pushed at its centre: no turn
+
+
+def test_broad_phase_gives_the_same_motion_as_testing_every_wall(
+    coils, channel_grid, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """In the spine phantom's channel (hundreds of wall segments, in contact most of the time)
+    the candidate walls give exactly the motion of the exact test against all of them."""
+    from pathlib import Path
+
+    from magrun.phantom import load_phantom
+    from magrun.robot import load_robot
+
+    phantom = load_phantom(Path(__file__).parents[1] / "protocols/phantoms/spine_l3l4.yaml")
+    walls = phantom.walls() + Walls.box(coils.workspace_half_width)
+    assert phantom.path is not None
+    start = phantom.path[0]
+    robot = load_robot("drug_delivery")
+
+    def run() -> tuple[np.ndarray, int]:
+        rig = SimRig(coils, channel_grid, robot, walls=walls, seed=3)
+        rig.reset([start[0], start[1], 0.3])
+        currents = np.array([20.0, -10, 15, 0, -20, 10, 0, 5])
+        contacts = 0
+        for k in range(50):  # 2 s of strong, changing pulls into the walls
+            rig.apply(np.roll(currents, k // 10))
+            rig.advance(0.04)
+            contacts += rig.observe().in_contact
+        return rig.state.copy(), contacts
+
+    fast, fast_contacts = run()
+    monkeypatch.setattr(SimRig, "_walls_in_reach", lambda self, x, y: self.walls)
+    exact, exact_contacts = run()
+    assert fast_contacts == exact_contacts > 10
+    assert_allclose(fast, exact, rtol=0, atol=1e-15)

@@ -45,6 +45,9 @@ from magrun.tracking.render import Renderer
 
 FloatArray = NDArray[np.float64]
 
+#: walls within this distance (m) of the body's reach are contact candidates (broad phase)
+NEAR = 2e-3
+
 
 @dataclass(frozen=True)
 class Perturbation:
@@ -152,7 +155,10 @@ class SimRig(Rig):
         self.driven = np.zeros(self.coils.n_channels)  # what the amplifiers drive now
         self.target = np.zeros(self.coils.n_channels)  # what they ramp toward
         self._contact = False
-        self._clear = (p[0], p[1], -math.inf)  # broad phase: check the walls on the next step
+        # broad phase (_walls_in_reach): recompute on the next step
+        self._clear: tuple[float, float, float, Walls, float] = (
+            p[0], p[1], -math.inf, self.walls, -math.inf
+        )  # fmt: skip
         if self.camera is not None:  # the same frames (lighting, noise) on every reset
             self._renderer = Renderer(self.camera, self.robot, self.walls, seed=self.seed)
 
@@ -189,8 +195,9 @@ class SimRig(Rig):
             state = discrete_step(
                 state, partial(self._field, drive), self.robot, h, substeps=1, ops=MATH_OPS
             )
-            if self._near_wall(state[0], state[1]):
-                state, touched = self.walls.resolve_capsule(
+            walls = self._walls_in_reach(state[0], state[1])
+            if walls is not None:
+                state, touched = walls.resolve_capsule(
                     state, self._half_axis, self._contact_radius,
                     self.robot.drag_perpendicular, self.robot.drag_rotation,
                 )  # fmt: skip
@@ -199,22 +206,32 @@ class SimRig(Rig):
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
 
-    def _near_wall(self, x: float, y: float) -> bool:
-        """Whether the body may touch a wall: a broad phase before the exact contact test.
+    def _walls_in_reach(self, x: float, y: float) -> Walls | None:
+        """The walls the body may touch now (None: none), a broad phase before the exact test.
 
         Every point of the body lies within ``reach`` (half length) of its centre, whatever
-        its heading, so a centre at distance d from every wall cannot touch one until it has
-        moved d − reach. The walls' distances are recomputed only once it may have.
+        its heading, so a wall at distance d from the centre cannot be touched before the
+        centre has moved d − reach. On a recomputation the walls within :data:`NEAR` of
+        reach are kept as the candidates: until the centre has moved as far as the nearest
+        of the others could allow, only candidates can touch, and only candidates are tested
+        (a phantom's channel has hundreds of segments, of which a few are ever in reach).
         """
-        cx, cy, slack = self._clear
-        if math.hypot(x - cx, y - cy) < slack:
-            return False
+        cx, cy, slack, nearby, others = self._clear
+        moved = math.hypot(x - cx, y - cy)
+        if moved < slack:
+            return None
+        if moved < others:
+            return nearby
         if self.walls.segments.size == 0:
-            d = math.inf
-        else:
-            d = float(np.min(self.walls.distances((x, y)))) - self._reach
-        self._clear = (x, y, d)
-        return d <= 0
+            self._clear = (x, y, math.inf, self.walls, math.inf)
+            return None
+        d = self.walls.distances((x, y)) - self._reach
+        near = d < NEAR
+        nearby = Walls(self.walls.segments[near])
+        others = float(np.min(d[~near])) if not np.all(near) else math.inf
+        slack = float(np.min(d))
+        self._clear = (x, y, slack, nearby, others)
+        return nearby if slack <= 0 else None
 
     def _field(self, currents: FloatArray, x: float, y: float) -> tuple[list[float], Any]:
         v = (currents @ self.grid.unit(x, y)).tolist()  # Python floats for MATH_OPS
