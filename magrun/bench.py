@@ -344,3 +344,64 @@ def bench_campaign(
         "recordings_mb": sum(r["recordings_mb"] for r in rows),
     }
     return result
+
+
+def bench_tick(
+    protocol_file: str = "protocols/noise.yaml", ticks: int = 800, method: str = "proposed"
+) -> dict[str, Any]:
+    """Median time per control tick of each stage of a camera trial, in one process.
+
+    The protocol's (default ``noise``: 25.5 Hz, S trajectory, camera tracking) first
+    ``method`` trial, feedback every frame without noise, ``ticks`` ticks run stage by stage like
+    :func:`magrun.loop.run_trial` with each stage timed: render (the rig's camera frame),
+    track (UNet window, keypoints, pose fit), control (mimic, estimator, planner), plant
+    (one control period of the simulated rig). No recorder, no latency charged.
+    """
+    import cv2
+    import torch
+
+    from magrun.control.methods import make_controller
+    from magrun.protocol import load_protocol
+    from magrun.robot import load_robot
+    from magrun.runner import _control_config, _make_rig, build_scene
+    from magrun.tracking.fluoroscopy import FluoroscopyMimic
+    from magrun.tracking.tracker import Tracker
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    protocol = load_protocol(protocol_file)
+    trial = next(t for t in protocol.expand() if t.method == method)
+    scene = build_scene(protocol)
+    controller = make_controller(method, load_robot(protocol.robot), _control_config(trial))
+    rig = _make_rig("sim", protocol.robot, scene.walls, trial.seed, True)
+    tracker = Tracker.default(rig.camera, rig.nominal_robot)
+    mimic = FluoroscopyMimic(25.5, 0.0, seed=trial.seed)
+    ref, dt = scene.reference, controller.dt
+    offsets = np.arange(protocol.controller.horizon + 1) * dt
+    rig.reset(ref.pose(0.0))
+    controller.reset(ref.pose(0.0))
+    tracker.reset()
+    stages: dict[str, list[float]] = {"render": [], "track": [], "control": [], "plant": []}
+    for k in range(ticks):
+        t = k * dt
+        t0 = time.perf_counter()
+        obs = rig.observe()
+        t1 = time.perf_counter()
+        pose = tracker(obs.frame) if obs.frame is not None else None
+        t2 = time.perf_counter()
+        out = controller.step(mimic(t, pose), ref.pose(t + offsets))
+        t3 = time.perf_counter()
+        rig.apply(out.currents)
+        rig.advance(dt)
+        t4 = time.perf_counter()
+        for name, v in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), strict=True):
+            stages[name].append(v)
+    medians = {f"{k}_ms": _ms(np.array(v), 50) for k, v in stages.items()}
+    return {
+        "benchmark": "tick",
+        "machine": machine(),
+        "method": method,
+        "ticks": ticks,
+        **medians,
+        "sum_of_medians_ms": sum(medians.values()),
+    }

@@ -1048,6 +1048,37 @@ def bench_campaign(
         )
 
 
+@bench.command("tick")
+@click.option(
+    "--protocol",
+    "protocol_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("protocols/noise.yaml"),
+    show_default=True,
+    help="Protocol whose first trial of the method is timed.",
+)
+@click.option("--ticks", default=800, show_default=True, help="Ticks to time.")
+@click.option("--method", default="proposed", show_default=True, help="Control method.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_tick(protocol_file: Path, ticks: int, method: str, as_json: bool) -> None:
+    """Median time per tick of each stage of a camera trial: render, track, control, plant."""
+    from magrun.bench import bench_tick as run
+    from magrun.control.methods import METHODS
+
+    _load_protocols((protocol_file,))
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    if ticks < 10:
+        raise InputError("--ticks must be at least 10")
+    out = run(str(protocol_file), ticks, method)
+    if as_json:
+        click.echo(json.dumps(out))
+        return
+    for stage in ("render", "track", "control", "plant"):
+        click.echo(f"{stage:>8}: {out[stage + '_ms']:.2f} ms")
+    click.echo(f"{'sum':>8}: {out['sum_of_medians_ms']:.2f} ms (medians)")
+
+
 def _say(prefix: str) -> Any:
     def say(what: str) -> None:
         click.echo(f"{prefix} {what} ...", err=True)

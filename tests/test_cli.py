@@ -351,3 +351,14 @@ def test_bench_campaign_checks_every_protocol_before_running(
     assert result.exit_code == 2
     assert "bad.yaml" in result.output
     assert not (tmp_path / "out").exists()
+
+
+def test_bench_tick_json(runner: CliRunner) -> None:
+    protocol = Path(__file__).parents[1] / "protocols" / "noise.yaml"
+    args = ["bench", "tick", "--protocol", str(protocol), "--ticks", "10", "--json"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    stages = [doc[f"{s}_ms"] for s in ("render", "track", "control", "plant")]
+    assert all(v > 0 for v in stages)
+    assert doc["sum_of_medians_ms"] == pytest.approx(sum(stages))
