@@ -276,8 +276,8 @@ class TrialRecorder:
         # The writer thread's Python work holds the GIL in slices of the switch interval
         # (5 ms by default): a control tick waiting for it would be late by up to that much.
         # 0.5 ms bounds the wait (magrun bench recorder measures what logging adds).
-        if sys.getswitchinterval() > SWITCH_INTERVAL_S:
-            sys.setswitchinterval(SWITCH_INTERVAL_S)
+        self._switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch_interval, SWITCH_INTERVAL_S))
         self._thread = threading.Thread(target=self._run, name=f"recorder {self.base.name}")
         self._thread.start()
         return self
@@ -289,6 +289,7 @@ class TrialRecorder:
         self._queue.put(_STOP)  # blocking: the loop is over, the writer drains the queue
         self._thread.join()
         self._thread = None
+        sys.setswitchinterval(self._switch_interval)
         self.status = status if not self.stats.error else "failed"
         self._mcap.add_metadata(
             "recorder",

@@ -108,3 +108,16 @@ def test_raw_image_bytes_parse_to_the_protobuf_message(shape: tuple[int, ...]) -
     frame = np.random.default_rng(2).integers(0, 256, shape, dtype=np.uint8)
     ours = RawImage.FromString(raw_image_bytes(frame, 123_456_789_012))
     assert ours == raw_image(frame, 123_456_789_012)
+
+
+def test_recorder_shortens_the_gil_switch_interval_only_while_it_runs(tmp_path: Path) -> None:
+    import sys
+
+    from magrun.recording import SWITCH_INTERVAL_S
+
+    before = sys.getswitchinterval()
+    setup = RecordingSetup(trial={"method": "x"}, channel_names=tuple("abcdefgh"))
+    with TrialRecorder(tmp_path / "t", setup) as rec:
+        rec.log(_ticks(1, None)[0])
+        assert sys.getswitchinterval() == pytest.approx(min(before, SWITCH_INTERVAL_S))
+    assert sys.getswitchinterval() == before

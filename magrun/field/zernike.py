@@ -327,7 +327,7 @@ class ZernikeFieldModel(PlanarFieldModel):
         """The CasADi form from :attr:`polynomial`, the cheapest to evaluate and differentiate.
 
         The term-by-term form remains :meth:`casadi_field_and_gradient_terms`; the two agree to
-        rounding (tests/test_models.py).
+        rounding (tests/test_nmpc.py).
         """
         return self.polynomial.casadi_field_and_gradient(position, currents)
 
