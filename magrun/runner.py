@@ -361,7 +361,8 @@ def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Exe
                 address=address, num_cpus=num_cpus, include_dashboard=False, log_to_driver=False
             )
         try:
-            task = ray.remote(num_cpus=1)(_run_in_worker)
+            one_thread = {k: os.environ.get(k, "1") for k in THREAD_ENV}
+            task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_in_worker)
             refs = {task.remote(t, str(out.resolve()), rig, None): t for t in trials}
             pending = list(refs)
             while pending:
