@@ -123,6 +123,7 @@ def run_trial(
     duration: float | None = None,
     progress: Callable[[int, int], None] | None = None,
     tracker: PoseTracker | None = None,
+    frame_due: Callable[[float], bool] | None = None,
     on_tick: Callable[[Tick], None] | None = None,
     charge_compute: bool = False,
     clock: Callable[[], float] = time.perf_counter,
@@ -132,6 +133,10 @@ def run_trial(
     With a ``tracker``, the controller's feedback comes from the rig's camera frames (the rig
     must have a camera); without one, from the actual pose. Give a fresh ``feedback`` per
     trial (a :class:`~magrun.tracking.fluoroscopy.FluoroscopyMimic` keeps its schedule).
+
+    ``frame_due(t)`` (with a tracker; e.g. the mimic's ``due``) says at which ticks the camera
+    takes a frame: on the others the rig renders none, nothing is tracked, and the feedback
+    gets nothing (no frame was due). Without it every tick has a frame.
 
     ``charge_compute`` (for simulated rigs) makes the loop's timing honest: the wall time
     ``c`` of tracking, feedback and the controller passes on the plant, with the previous
@@ -158,15 +163,19 @@ def run_trial(
     offsets = np.arange(horizon + 1) * dt
     k, t = 0, 0.0
     while t <= total + 1e-9:
-        obs = rig.observe()
+        take = tracker is None or frame_due is None or frame_due(t)
+        obs = rig.observe(frame=take and tracker is not None)
         t0 = clock()
+        camera_pose: FloatArray | None = None
         if tracker is None:
-            camera_pose: FloatArray | None = obs.pose
+            camera_pose = obs.pose
+        elif not take:
+            pass  # no frame due: nothing to track, nothing delivered
         elif obs.frame is None:
             raise ValueError("a tracker needs camera frames: give the rig a camera")
         else:
             camera_pose = tracker(obs.frame)
-        z = feedback(obs.t, camera_pose)
+        z = feedback(obs.t, camera_pose) if take else None
         window = reference.pose(obs.t + offsets)
         out = controller.step(z, window)
         c = clock() - t0

@@ -198,6 +198,16 @@ class FeedbackSettings(_Strict):
             "simulator's true pose feeds the fluoroscopy mimic, and no frames are recorded."
         ),
     )
+    camera_frames: Literal["fluoroscopy", "every_tick"] = Field(
+        "fluoroscopy",
+        description=(
+            "Simulated rig: at which ticks the camera takes (renders, tracks, records) a frame. "
+            "'fluoroscopy': only when the fluoroscopy mimic takes one, the only frames the "
+            "controller sees (the simulator's truth is the actual pose, which is what the real "
+            "rig's high-rate camera is for). 'every_tick': at the control rate, as the real "
+            "rig's camera, /robot/pose/tracked then at the control rate (slower)."
+        ),
+    )
 
 
 class RecordingSettings(_Strict):

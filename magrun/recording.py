@@ -204,7 +204,7 @@ class RecordingSetup:
     workspace_half_width: float | None = None  # m, the square the robot may use
     reference: FloatArray | None = None  # (n, 3) the desired path, for the views
     camera: Any = None  # magrun.tracking.camera.Camera, for the pixel overlay
-    image_every: int = 1
+    image_every: int = 1  # record every n-th camera frame (0: none)
     jpeg_quality: int = 90
     recording_id: str = ""
     image_format: str = "jpeg"  # or "raw": foxglove.RawImage, every pixel
@@ -234,6 +234,7 @@ class TrialRecorder:
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._flush_ns = int(flush_s * 1e9)
         self._thread: threading.Thread | None = None
+        self._frames = 0  # camera frames seen (ticks may have none)
 
     @property
     def mcap_path(self) -> Path:
@@ -364,12 +365,17 @@ class TrialRecorder:
         }
         jpeg: bytes | None = None
         rerun_image = False
-        if tick.frame is not None and setup.image_every and tick.k % setup.image_every == 0:
+        frame = tick.frame  # recorded if it is every image_every-th camera frame
+        if frame is not None:
+            if not (setup.image_every and self._frames % setup.image_every == 0):
+                frame = None
+            self._frames += 1
+        if frame is not None:
             rerun_image = self.stats.images % setup.rerun_image_every == 0
             if setup.image_format == "raw":
-                self._put_bytes("/camera/image", RawImage, raw_image_bytes(tick.frame, t_ns), t_ns)
+                self._put_bytes("/camera/image", RawImage, raw_image_bytes(frame, t_ns), t_ns)
             else:
-                jpeg = encode_jpeg(tick.frame, setup.jpeg_quality)
+                jpeg = encode_jpeg(frame, setup.jpeg_quality)
                 img = CompressedImage(frame_id="camera", format="jpeg", data=jpeg)
                 _stamp(img, t_ns)
                 self._put("/camera/image", img, t_ns)

@@ -186,6 +186,7 @@ def execute_trial(
             "control_rate_hz": protocol.controller.rate_hz,
             "charge_compute_time": protocol.controller.charge_compute_time,
             "feedback": "camera" if tracker is not None else "truth",
+            "camera_frames": protocol.feedback.camera_frames if tracker is not None else "",
             "critical_boundary": scene.critical or "",
             "software": software_versions(),
         }
@@ -214,6 +215,7 @@ def execute_trial(
                 horizon=protocol.controller.horizon,
                 duration=protocol.trial_duration(trial.quick), progress=tick_progress,
                 tracker=tracker, on_tick=recorder.log,
+                frame_due=mimic.due if protocol.feedback.camera_frames == "fluoroscopy" else None,
                 charge_compute=protocol.controller.charge_compute_time and rig == "sim",
             )  # fmt: skip
         stats = recorder.close("ok")

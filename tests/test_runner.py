@@ -88,6 +88,8 @@ def test_mcap_has_the_contract_topics_and_counts(tiny_run: Any) -> None:
         assert set(counts) == set(TOPICS)
         expected = dict.fromkeys(TOPICS, n)
         expected["/robot/pose/measured"] = frames
+        # the simulated camera takes only the fluoroscopy frames (feedback.camera_frames)
+        expected["/camera/image"] = expected["/robot/pose/tracked"] = frames
         expected["/robot/pose/predicted"] = n - 1  # no prediction of the first tick
         assert counts == expected
         assert e["ticks"] == n

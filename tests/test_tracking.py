@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import replace
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 from scipy.optimize import least_squares
 
 from magrun.loop import run_trial
@@ -210,6 +211,47 @@ def test_rendered_magnet_robot_matches_its_labels(robots, theta: float) -> None:
         assert_allclose(_colour_centroid(image, colour), expected, atol=0.3)
 
 
+@pytest.mark.parametrize("robot_name", ["magnet", "drug_delivery"])
+@pytest.mark.parametrize(
+    "pose",
+    [[0.0123, -0.0071, 0.4], [0.0495, 0.02, 2.5], [-0.049, -0.0505, -1.2], [0.053, 0.0, 0.0]],
+    ids=["inside", "at-the-edge", "corner", "half-out"],
+)
+def test_renderer_equals_the_whole_frame_camera_model(robot_name: str, pose: list[float]) -> None:
+    """The trial renderer (blurred lit background + blurred robot window) equals
+    :func:`finish` on the whole scene, within one grey level (float rounding), everywhere,
+    including frames where the robot's window is cut by the image border."""
+    from magrun.tracking.render import draw_robot, finish
+
+    robot = load_robot(robot_name)
+    cam = Camera(CameraConfig(noise=0.0, blur_px=1.1, lighting=0.15))
+    r = Renderer(cam, robot, Walls.box(0.045), seed=7)
+    scene = r._background.copy()
+    draw_robot(scene, cam, pose, robot)
+    rng = copy.deepcopy(r.rng)
+    expected = finish(scene, cam, r.lighting, r._illumination, rng).astype(int)
+    got = r.render(pose).astype(int)
+    assert np.abs(got - expected).max() <= 1
+    assert np.count_nonzero(got != expected) < 1e-3 * got.size
+    drawn = np.count_nonzero(np.any(scene != r._background, axis=-1))
+    assert drawn > 20  # the robot is (partly) in view: the check is not vacuous
+
+
+def test_sensor_noise_is_independent_between_frames() -> None:
+    """Noise windows at per-frame offsets into the trial's bank: at each pixel, two frames'
+    noise is uncorrelated (|r| < 4/√n for n pixels), and a frame's noise has no spatial
+    correlation between neighbours."""
+    cfg = replace(CLEAN, noise=0.02)
+    r = Renderer(Camera(cfg), load_robot("magnet"), seed=5)
+    pose = [1.0, 1.0, 0.0]  # out of view: the frames are flat fluid plus noise
+    n1, n2, n3 = (r.render(pose)[..., 1].astype(float).ravel() for _ in range(3))
+    bound = 4 / math.sqrt(n1.size)
+    for a, b in ((n1, n2), (n2, n3), (n1, n3)):
+        assert abs(np.corrcoef(a, b)[0, 1]) < bound
+    img = n1.reshape(256, 256)
+    assert abs(np.corrcoef(img[:, :-1].ravel(), img[:, 1:].ravel())[0, 1]) < bound
+
+
 def test_renderer_is_seeded_and_noisy_frames_differ() -> None:
     robot = load_robot("drug_delivery")
     a = Renderer(Camera(), robot, seed=3)
@@ -382,6 +424,29 @@ def test_closed_loop_with_camera_tracking_and_fluoroscopy(shipped, magnet_robot)
     delivered = np.isfinite(log.measured[:, 0])
     assert delivered.sum() == 16  # t = 0 … 2 s at 7.5 Hz: due at k/7.5 for k = 0 … 15
     assert_allclose(log.measured[delivered], log.tracked[delivered])
+
+
+def test_camera_takes_only_the_frames_the_fluoroscope_takes(shipped, magnet_robot) -> None:
+    """With ``frame_due``, the rig renders and the tracker tracks exactly the delivered ticks;
+    the others have no frame, no tracked pose and no measurement."""
+    from magrun.control.methods import make_controller
+
+    rig = SimRig.default(seed=2, camera=CameraConfig())
+    assert rig.camera is not None
+    tracker = Tracker(shipped, rig.camera, magnet_robot)
+    mimic = FluoroscopyMimic(7.5, 0.0, seed=0)
+    frames: list[bool] = []
+    log = run_trial(
+        make_controller("baseline2"), rig, s_trajectory(), mimic, duration=2.0, tracker=tracker,
+        frame_due=mimic.due, on_tick=lambda tick: frames.append(tick.frame is not None),
+    )  # fmt: skip
+    delivered = np.isfinite(log.measured[:, 0])
+    assert delivered.sum() == 16  # as every-tick tracking: due at k/7.5 s for k = 0 … 15
+    assert_array_equal(frames, delivered)
+    assert_array_equal(np.isfinite(log.tracked[:, 0]), delivered)
+    assert_allclose(log.measured[delivered], log.tracked[delivered])
+    err = np.hypot(*(log.tracked[delivered, :2] - log.actual[delivered, :2]).T)
+    assert err.max() < 0.3e-3
 
 
 def test_tracker_without_frames_is_an_error(shipped, magnet_robot) -> None:

@@ -100,8 +100,9 @@ class Rig(ABC):
         """Start a trial with the robot at rest at ``pose`` (x, y, θ) and all currents at 0 A."""
 
     @abstractmethod
-    def observe(self) -> Observation:
-        """The rig's time and the robot's actual pose now."""
+    def observe(self, frame: bool = True) -> Observation:
+        """The rig's time and the robot's actual pose now, with a camera frame if it has a
+        camera and ``frame`` is true (a simulated camera then renders only frames asked for)."""
 
     @abstractmethod
     def apply(self, currents: ArrayLike) -> FloatArray:

@@ -162,10 +162,10 @@ class SimRig(Rig):
         if self.camera is not None:  # the same frames (lighting, noise) on every reset
             self._renderer = Renderer(self.camera, self.robot, self.walls, seed=self.seed)
 
-    def observe(self) -> Observation:
+    def observe(self, frame: bool = True) -> Observation:
         pose = self.state[:3].copy()
-        frame = self._renderer.render(pose) if self._renderer is not None else None
-        obs = Observation(t=self.t, pose=pose, in_contact=self._contact, frame=frame)
+        image = self._renderer.render(pose) if frame and self._renderer is not None else None
+        obs = Observation(t=self.t, pose=pose, in_contact=self._contact, frame=image)
         self._contact = False
         return obs
 

@@ -78,10 +78,18 @@ class FluoroscopyMimic:
         self._rng = np.random.default_rng(self.seed)
         self._frame = 0  # index of the next due frame on the grid k / rate
 
+    def due(self, t: float) -> bool:
+        """Whether a fluoroscopy frame is due at camera time ``t`` (s); changes nothing.
+
+        The trial loop asks this before rendering a simulated frame, so the camera renders
+        and tracks only the frames the mimic will take.
+        """
+        return t + 1e-9 >= self._frame * self.period
+
     def __call__(self, t: float, pose: ArrayLike | None) -> FloatArray | None:
         """The measurement delivered at camera time ``t`` (s), or ``None`` if none is due."""
         # small tolerance: t = k·dt accumulates rounding, and a due time must not slip a frame
-        if t + 1e-9 < self._frame * self.period:
+        if not self.due(t):
             return None
         self._frame = math.floor((t + 1e-9) * self.rate_hz) + 1 if self.period else 0
         if pose is None:

@@ -119,34 +119,48 @@ class _Canvas:
     centroids land within ~0.05 px (tests/test_tracking.py allows 0.1). OpenCV's own anti-aliasing
     dilates a filled shape by about half a pixel, unevenly, which put the labels off the
     drawn robot by up to 0.4 px.
-    Shapes are drawn into a window (``origin``, the image's size) of the frame, so the cost
-    follows the shape's size, not the frame's.
+    ``image`` may be a window of the frame whose top-left pixel is ``origin``; each shape is
+    rasterised over its own bounding box only, so the cost follows the shape's size.
     """
 
     def __init__(self, image: F32, origin: tuple[int, int] = (0, 0)) -> None:
         self.image = image
         self.origin = np.array(origin, dtype=np.float64)
-        h, w = image.shape[:2]
-        self._mask = np.zeros((h * _SUPERSAMPLE, w * _SUPERSAMPLE), dtype=np.uint8)
+        self._mask = np.zeros((0, 0), dtype=np.uint8)
 
-    def _fill(self, uv: FloatArray) -> None:
-        """Rasterise the convex polygon ``uv`` (frame px) into the fine mask."""
+    def _fill(self, uv: FloatArray) -> tuple[slice, slice] | None:
+        """Rasterise the convex polygon ``uv`` (frame px) into a fine mask over its bounding box.
+
+        Returns the box (rows, columns of :attr:`image`), or None when the polygon misses it.
+        """
+        local = uv - self.origin
+        h, w = self.image.shape[:2]
+        # every pixel the polygon (or OpenCV's ½ fine-px overshoot) can touch
+        u0, v0 = np.maximum(np.floor(local.min(axis=0)).astype(int) - 1, 0)
+        u1, v1 = np.minimum(np.ceil(local.max(axis=0)).astype(int) + 2, [w, h])
+        if u1 <= u0 or v1 <= v0:
+            return None
+        self._mask = np.zeros(((v1 - v0) * _SUPERSAMPLE, (u1 - u0) * _SUPERSAMPLE), np.uint8)
         # fine pixel j's centre is at coarse coordinate (j + 0.5)/S − 0.5
-        fine = (uv - self.origin + 0.5) * _SUPERSAMPLE - 0.5
+        fine = (local - (u0, v0) + 0.5) * _SUPERSAMPLE - 0.5
         # OpenCV fills every pixel the outline touches, ~½ px beyond it: inset by the 0.45
         # fine px that makes the filled area match the polygon's over random shapes
         cv2.fillConvexPoly(self._mask, _fixed(inset(fine, 0.45)), 255, cv2.LINE_8, _SHIFT)
+        return slice(v0, v1), slice(u0, u1)
 
-    def _blend(self, colour: tuple[float, float, float], opacity: float) -> None:
-        h, w = self.image.shape[:2]
+    def _blend(
+        self, box: tuple[slice, slice] | None, colour: tuple[float, float, float], opacity: float
+    ) -> None:
+        if box is None:
+            return
+        target = self.image[box]
+        h, w = target.shape[:2]
         cover = cv2.resize(self._mask, (w, h), interpolation=cv2.INTER_AREA)
         a = cover.astype(np.float32) * np.float32(opacity / 255.0)
-        self.image += a[..., None] * (np.asarray(colour, dtype=np.float32) - self.image)
-        self._mask[:] = 0
+        target += a[..., None] * (np.asarray(colour, dtype=np.float32) - target)
 
     def polygon(self, uv: FloatArray, colour: tuple[float, float, float], opacity: float) -> None:
-        self._fill(uv)
-        self._blend(colour, opacity)
+        self._blend(self._fill(uv), colour, opacity)
 
     def capsule(
         self,
@@ -169,8 +183,7 @@ class _Canvas:
             [b + r * np.column_stack([np.cos(arc_b), np.sin(arc_b)]),
              a + r * np.column_stack([np.cos(arc_a), np.sin(arc_a)])]
         )  # fmt: skip
-        self._fill(outline)
-        self._blend(colour, opacity)
+        self.polygon(outline, colour, opacity)
 
 
 def draw_walls(image: F32, camera: Camera, walls: Walls) -> None:
@@ -182,8 +195,22 @@ def draw_walls(image: F32, camera: Camera, walls: Walls) -> None:
         canvas.capsule(a, b, half, AGAROSE, 1.0)
 
 
-def draw_robot(image: F32, camera: Camera, pose: ArrayLike, robot: RobotParams) -> None:
-    """Paint the robot at ``pose`` (x, y, θ; m, rad) onto ``image`` (in place)."""
+def robot_reach_px(camera: Camera, robot: RobotParams) -> float:
+    """Farthest a drawn robot pixel can be from the robot's centre, px (plus anti-aliasing)."""
+    return (robot.length / 2 + robot.diameter / 2) * camera.scale + 2
+
+
+def draw_robot(
+    image: F32,
+    camera: Camera,
+    pose: ArrayLike,
+    robot: RobotParams,
+    origin: tuple[int, int] = (0, 0),
+) -> None:
+    """Paint the robot at ``pose`` (x, y, θ; m, rad) onto ``image`` (in place).
+
+    ``image`` is the frame, or a window of it whose top-left pixel is ``origin`` (u, v).
+    """
     x, y, th = np.asarray(pose, dtype=np.float64)
     s = camera.scale
     half_l, radius = robot.length / 2 * s, robot.diameter / 2 * s
@@ -191,13 +218,11 @@ def draw_robot(image: F32, camera: Camera, pose: ArrayLike, robot: RobotParams) 
     u = np.array([np.cos(th), -np.sin(th)])  # image v points down: world +y is −v
     n = np.array([-u[1], u[0]])
     h, w = image.shape[:2]
-    reach = half_l + radius + 3
-    lo = np.clip(np.floor(c - reach), 0, [w, h]).astype(int)
-    hi = np.clip(np.ceil(c + reach) + 1, 0, [w, h]).astype(int)
-    if np.any(hi - lo <= 0):
+    local = c - origin
+    reach = robot_reach_px(camera, robot)
+    if np.any(local + reach < 0) or np.any(local - reach > (w, h)):
         return  # out of view
-    window = image[lo[1] : hi[1], lo[0] : hi[0]]
-    canvas = _Canvas(window, (int(lo[0]), int(lo[1])))
+    canvas = _Canvas(image, origin)
 
     def rect(s0: float, s1: float, half_width: float) -> FloatArray:
         return np.array(
@@ -240,8 +265,25 @@ def finish(
     return np.clip(out * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
+def blur_radius_px(sigma: float) -> int:
+    """Half the kernel OpenCV's ``GaussianBlur`` uses on float images for ``sigma``, px."""
+    return (round(sigma * 8 + 1) | 1) // 2 if sigma > 0 else 0
+
+
 class Renderer:
     """Frames of one trial: fixed camera, robot and walls, lighting drawn once from ``seed``.
+
+    A frame is the same camera model as :func:`finish` applied to the scene, computed the
+    cheap way a trial can afford (~0.5 ms instead of ~2 ms for 256²):
+
+    - the background (fluid, walls) is blurred and lit once; the blur is linear, so a frame is
+      that plus the blurred, lit difference the robot makes, computed in a window around the
+      robot only (exact up to float rounding; tests/test_tracking.py compares with
+      :func:`finish`);
+    - sensor noise is a window, at a random offset drawn per frame, into a bank of
+      (2H, 2W, 3) i.i.d. Gaussian samples drawn once per trial: within a frame every pixel's
+      noise is independent N(0, σ²), and at any one pixel successive frames read different
+      samples. Drawing 196k fresh normals per frame cost more than the rest of the frame.
 
     Parameters
     ----------
@@ -261,15 +303,47 @@ class Renderer:
         self.camera = camera
         self.robot = robot
         self.rng = np.random.default_rng(seed)
-        self.lighting = Lighting.draw(self.rng, camera.config.lighting)
+        cfg = camera.config
+        self.lighting = Lighting.draw(self.rng, cfg.lighting)
         self._illumination = self.lighting.field(camera.shape)
         self._background = np.empty((*camera.shape, 3), dtype=np.float32)
         self._background[:] = np.asarray(FLUID, dtype=np.float32)
         if walls is not None:
             draw_walls(self._background, camera, walls)
+        # in grey levels (0–255): the lit, blurred background and the per-pixel light
+        self._light = self._illumination * np.float32(255.0)
+        blurred = self._background
+        if cfg.blur_px > 0:
+            blurred = np.asarray(cv2.GaussianBlur(blurred, (0, 0), cfg.blur_px), np.float32)
+        self._lit = blurred * self._light
+        self._margin = robot_reach_px(camera, robot) + blur_radius_px(cfg.blur_px) + 1
+        h, w = camera.shape
+        self._noise: F32 | None = None
+        if cfg.noise > 0:
+            self._noise = self.rng.standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
+            self._noise *= np.float32(cfg.noise * 255.0)
 
     def render(self, pose: ArrayLike) -> NDArray[np.uint8]:
         """The frame with the robot at ``pose`` (x, y, θ; m, rad): uint8 RGB, shape (H, W, 3)."""
-        image = self._background.copy()
-        draw_robot(image, self.camera, pose, self.robot)
-        return finish(image, self.camera, self.lighting, self._illumination, self.rng)
+        cfg = self.camera.config
+        h, w = self.camera.shape
+        image = self._lit.copy()
+        p = np.asarray(pose, dtype=np.float64)
+        c = self.camera.to_pixel(p[:2])
+        lo = np.clip(np.floor(c - self._margin), 0, (w, h)).astype(int)
+        hi = np.clip(np.ceil(c + self._margin) + 1, 0, (w, h)).astype(int)
+        if np.all(hi > lo):
+            box = (slice(lo[1], hi[1]), slice(lo[0], hi[0]))
+            patch = self._background[box].copy()
+            draw_robot(patch, self.camera, p, self.robot, origin=(int(lo[0]), int(lo[1])))
+            patch -= self._background[box]  # zero within `margin` of the window's inner sides
+            if cfg.blur_px > 0:  # so the reflected border equals the whole frame's blur
+                patch = np.asarray(cv2.GaussianBlur(patch, (0, 0), cfg.blur_px), np.float32)
+            image[box] += patch * self._light[box]
+        image *= np.float32(1.0 + self.lighting.flicker * self.rng.standard_normal())
+        if self._noise is not None:
+            dv, du = int(self.rng.integers(h)), int(self.rng.integers(w))
+            image += self._noise[dv : dv + h, du : du + w]
+        image += np.float32(0.5)
+        np.clip(image, 0, 255, out=image)
+        return image.astype(np.uint8)
