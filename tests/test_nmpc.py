@@ -31,10 +31,21 @@ def test_polynomial_form_equals_the_zernike_model(zernike_model, rng) -> None:
     assert poly.coefficients.shape == (2, len(exponents(9)), 8)
     p = rng.uniform(-0.05, 0.05, (500, 2))
     currents = rng.uniform(-30, 30, (500, 8))
-    B0, G0 = zernike_model.field_and_gradient(p, currents)
+    Bu, Gu = zernike_model.unit_field_and_gradient_terms(p)  # term by term, per channel
+    B0, G0 = np.einsum("nck,nc->nk", Bu, currents), np.einsum("nckl,nc->nkl", Gu, currents)
     B1, G1 = poly.field_and_gradient(p, currents)
     assert_allclose(B1, B0, rtol=0, atol=1e-10 * np.abs(B0).max())
     assert_allclose(G1, G0, rtol=0, atol=1e-10 * np.abs(G0).max())
+    # the model's own NumPy evaluation is the polynomial form, per channel and at one point
+    B2, G2 = zernike_model.unit_field_and_gradient(p)
+    assert B2.shape == Bu.shape
+    assert G2.shape == Gu.shape
+    assert_allclose(B2, Bu, rtol=0, atol=1e-10 * np.abs(Bu).max())
+    assert_allclose(G2, Gu, rtol=0, atol=1e-10 * np.abs(Gu).max())
+    b, g = zernike_model.unit_field_and_gradient(p[7])
+    assert b.shape == (8, 2)
+    assert g.shape == (8, 2, 2)
+    assert_allclose(b, Bu[7], rtol=0, atol=1e-10 * np.abs(Bu).max())
 
 
 def test_polynomial_gradient_matches_finite_differences(zernike_model, rng) -> None:

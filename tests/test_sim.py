@@ -44,6 +44,51 @@ def test_channel_grid_equals_the_lookup_table_model(
         assert_allclose(u[:, 2:].reshape(8, 2, 2), g, rtol=1e-9, atol=1e-13)
 
 
+def test_held_field_equals_the_grid_times_the_currents(channel_grid: ChannelGrid, rng) -> None:
+    """Corners contracted with the currents once per cell, then blended, equal the blend of
+    every channel times the currents (rounding, 1e-12 of the largest value), inside the grid,
+    on revisited cells and beyond its border (linear extrapolation)."""
+    currents = rng.uniform(-30, 30, 8)
+    held = channel_grid.held(currents)
+    inside = rng.uniform(-0.05, 0.05, (300, 2))
+    revisit = inside[:50] + rng.normal(0, 1e-5, (50, 2))
+    beyond = rng.uniform(-0.09, 0.09, (50, 2))
+    for x, y in np.vstack([inside, revisit, beyond]):
+        v = currents @ channel_grid.unit(x, y)
+        B, (gx, gy) = held(x, y)
+        assert_allclose(np.concatenate([B, gx, gy]), v, rtol=0, atol=1e-12 * np.abs(v).max())
+    assert len(held._cells) < 400  # each cell contracted once
+
+
+def test_plant_with_held_fields_moves_as_with_a_field_read_per_substep(
+    coils, channel_grid, magnet_robot, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """2 s of changing currents (ramps and holds): the same final state to rounding."""
+
+    def run() -> np.ndarray:
+        rig = SimRig(coils, channel_grid, magnet_robot, seed=1)
+        rig.reset([0.01, -0.01, 0.5])
+        for k in range(50):
+            rig.apply(np.roll(np.array([12.0, -6, 9, 0, -12, 6, 0, 3]), k // 10))
+            rig.advance(0.013)
+            rig.advance(0.027)
+        return rig.state.copy()
+
+    fast = run()
+
+    def per_substep(grid: ChannelGrid, currents: np.ndarray) -> object:
+        def field(x: float, y: float) -> tuple[list[float], tuple[list[float], list[float]]]:
+            v = (currents @ grid.unit(x, y)).tolist()
+            return v[:2], (v[2:4], v[4:6])
+
+        return field
+
+    monkeypatch.setattr(ChannelGrid, "held", per_substep)
+    reference = run()
+    assert np.linalg.norm(fast[:2] - [0.01, -0.01]) > 1e-3  # it moved
+    assert_allclose(fast, reference, rtol=1e-9, atol=1e-12)
+
+
 @pytest.fixture
 def rig(coils, channel_grid, magnet_robot) -> SimRig:
     return SimRig(coils, channel_grid, magnet_robot, perturbation=Perturbation(), seed=0)

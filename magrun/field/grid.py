@@ -89,7 +89,48 @@ class ChannelGrid:
             (1 - ty) * c[1, 0] + ty * c[1, 1]
         )
 
+    def held(self, currents: ArrayLike) -> HeldField:
+        """A reader of the total field for ``currents`` (A) held, in Python floats (below)."""
+        return HeldField(self, np.asarray(currents, dtype=np.float64))
+
     def field(self, x: float, y: float, currents: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Total field (2,) in T and gradient (2, 2) in T/m at (x, y) for ``currents`` in A."""
         v = np.asarray(currents, dtype=np.float64) @ self.unit(x, y)
         return v[:2], v[2:].reshape(2, 2)
+
+
+class HeldField:
+    """The total field of :class:`ChannelGrid` for one set of held currents, as Python floats.
+
+    The plant reads the field once per 1 ms sub-step, and the currents stay the same over a
+    control period: each grid cell's four corners are contracted with the currents once, when
+    the robot first enters the cell, so a read is a bilinear blend of six numbers (~2 µs
+    against ~12 µs for :meth:`ChannelGrid.unit` and the product). The result equals
+    ``currents @ grid.unit(x, y)`` to rounding (tests/test_sim.py).
+    """
+
+    def __init__(self, grid: ChannelGrid, currents: FloatArray) -> None:
+        self.grid = grid
+        self.currents = currents
+        self._cells: dict[tuple[int, int], list[list[list[float]]]] = {}
+
+    def __call__(self, x: float, y: float) -> tuple[list[float], tuple[list[float], list[float]]]:
+        """``(B, G)`` at (x, y) m: B = [Bx, By] in T, G = ([∂Bx/∂x, ∂Bx/∂y], [∂By/∂x, ∂By/∂y])
+        in T/m, the nested form :func:`magrun.robot.discrete_step` takes."""
+        g = self.grid
+        nx, ny = g.table.shape[:2]
+        fx, fy = (x - g.x0) / g.step, (y - g.y0) / g.step
+        i = min(max(math.floor(fx), 0), nx - 2)
+        j = min(max(math.floor(fy), 0), ny - 2)
+        tx, ty = fx - i, fy - j
+        cell = self._cells.get((i, j))
+        if cell is None:
+            corners = np.einsum("c,abcv->abv", self.currents, g.table[i : i + 2, j : j + 2])
+            cell = self._cells[(i, j)] = corners.reshape(4, 6).tolist()
+        c00, c01, c10, c11 = cell
+        sx, sy = 1 - tx, 1 - ty
+        v = [
+            sx * (sy * a + ty * b) + tx * (sy * c + ty * d)
+            for a, b, c, d in zip(c00, c01, c10, c11, strict=True)
+        ]
+        return v[:2], (v[2:4], v[4:6])

@@ -46,14 +46,33 @@ def exponents(degree: int) -> list[tuple[int, int]]:
     return [(d - j, j) for d in range(degree + 1) for j in range(d + 1)]
 
 
-def monomials(x: FloatArray, y: FloatArray, degree: int) -> FloatArray:
-    """x^i y^j for every exponent pair of :func:`exponents`, shape (..., n_monomials)."""
-    xp = [np.ones_like(x)]
-    yp = [np.ones_like(y)]
+def _powers(x: FloatArray, y: FloatArray, degree: int) -> tuple[list[Any], list[Any]]:
+    xp, yp = [np.ones_like(x)], [np.ones_like(y)]
     for _ in range(degree):
         xp.append(xp[-1] * x)
         yp.append(yp[-1] * y)
+    return xp, yp
+
+
+def monomials(x: FloatArray, y: FloatArray, degree: int) -> FloatArray:
+    """x^i y^j for every exponent pair of :func:`exponents`, shape (..., n_monomials)."""
+    xp, yp = _powers(x, y, degree)
     return np.stack([xp[i] * yp[j] for i, j in exponents(degree)], axis=-1)
+
+
+def monomials_and_derivatives(
+    x: FloatArray, y: FloatArray, degree: int
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`monomials` and their derivatives in x and in y, each (..., n_monomials)."""
+    i, j = np.array(exponents(degree)).T
+    k = np.arange(degree + 1)
+    xp = np.asarray(x, dtype=np.float64)[..., None] ** k  # (..., d + 1)
+    yp = np.asarray(y, dtype=np.float64)[..., None] ** k
+    xi, yj = xp[..., i], yp[..., j]
+    phi = xi * yj
+    ddx = i * xp[..., np.maximum(i - 1, 0)] * yj
+    ddy = j * xi * yp[..., np.maximum(j - 1, 0)]
+    return phi, ddx, ddy
 
 
 @dataclass(frozen=True)
@@ -92,7 +111,9 @@ class PolynomialField:
         nodes = np.cos(np.pi * (np.arange(n) + 0.5) / n)
         X, Y = np.meshgrid(nodes, nodes, indexing="ij")
         V = monomials(X.ravel(), Y.ravel(), d)
-        B = model.unit_field(np.column_stack([X.ravel(), Y.ravel()]) * L)  # (n², ch, 2)
+        # the model's own evaluation (a model may answer unit_field from this very form)
+        points = np.column_stack([X.ravel(), Y.ravel()]) * L
+        B = PlanarFieldModel.unit_field_and_gradient(model, points)[0]  # (n², ch, 2)
         target = B.transpose(0, 2, 1).reshape(len(V), -1)  # (n², 2·ch)
         coef, *_ = np.linalg.lstsq(V, target, rcond=None)
         residual = np.max(np.abs(V @ coef - target)) / np.max(np.abs(target))
@@ -112,23 +133,27 @@ class PolynomialField:
         """Total field (..., 2) in T and gradient (..., 2, 2) in T/m, as the models return."""
         p = np.asarray(positions, dtype=np.float64) / self.scale
         a = np.einsum("ktc,...c->...kt", self.coefficients, np.asarray(currents, dtype=float))
-        x, y = p[..., 0], p[..., 1]
-        phi = monomials(x, y, self.degree)
-        dx, dy = self._derivative_monomials(x, y)
+        phi, dx, dy = monomials_and_derivatives(p[..., 0], p[..., 1], self.degree)
         B = np.einsum("...t,...kt->...k", phi, a)
         G = np.stack(
             [np.einsum("...t,...kt->...k", dx, a), np.einsum("...t,...kt->...k", dy, a)], axis=-1
         )
         return B, G / self.scale
 
-    def _derivative_monomials(self, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-        d = self.degree
-        xp = [np.ones_like(x)] + [x**i for i in range(1, d + 1)]
-        yp = [np.ones_like(y)] + [y**j for j in range(1, d + 1)]
-        zero = np.zeros_like(x)
-        ddx = [i * xp[i - 1] * yp[j] if i else zero for i, j in exponents(d)]
-        ddy = [j * xp[i] * yp[j - 1] if j else zero for i, j in exponents(d)]
-        return np.stack(ddx, axis=-1), np.stack(ddy, axis=-1)
+    def unit_field_and_gradient(self, positions: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Every channel at 1 A, as :meth:`PlanarFieldModel.unit_field_and_gradient`:
+        B (..., n_channels, 2) in T/A, G (..., n_channels, 2, 2) in T/(m A)."""
+        p = np.asarray(positions, dtype=np.float64)
+        if p.shape[-1:] != (2,):
+            raise ValueError(f"positions must have shape (..., 2), got {p.shape}")
+        p = p / self.scale
+        phi, dx, dy = monomials_and_derivatives(p[..., 0], p[..., 1], self.degree)
+        _, t, c = self.coefficients.shape
+        C = self.coefficients.transpose(1, 2, 0).reshape(t, 2 * c)  # [t, (c, k)]
+        lead = p.shape[:-1]
+        B = (phi @ C).reshape(*lead, c, 2)
+        G = np.stack([dx @ C, dy @ C], axis=-1).reshape(*lead, c, 2, 2) / self.scale
+        return B, G
 
     # -- CasADi -------------------------------------------------------------------------------
 

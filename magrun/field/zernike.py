@@ -323,6 +323,19 @@ class ZernikeFieldModel(PlanarFieldModel):
         """The same model as one polynomial in the workspace frame (:mod:`.polynomial`)."""
         return PolynomialField.from_model(self)
 
+    def unit_field_and_gradient(
+        self, positions: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """From :attr:`polynomial` (~20× faster than term by term at one point); the two agree
+        to rounding (tests/test_nmpc.py). Term by term: :meth:`unit_field_and_gradient_terms`."""
+        return self.polynomial.unit_field_and_gradient(positions)
+
+    def unit_field_and_gradient_terms(
+        self, positions: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Every channel's field and gradient summed term by term over Zernike polynomials."""
+        return super().unit_field_and_gradient(positions)
+
     def casadi_field_and_gradient(self, position: Any, currents: Any) -> tuple[Any, Any]:
         """The CasADi form from :attr:`polynomial`, the cheapest to evaluate and differentiate.
 

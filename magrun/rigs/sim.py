@@ -28,6 +28,7 @@ re-evaluating the field and the ramping currents every step.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -36,7 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magrun.field.coils import CoilSystem
-from magrun.field.grid import ChannelGrid
+from magrun.field.grid import ChannelGrid, HeldField
 from magrun.rigs.base import Observation, Rig, clamp_currents
 from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
 from magrun.scene import Walls
@@ -154,6 +155,7 @@ class SimRig(Rig):
         self.t = 0.0
         self.driven = np.zeros(self.coils.n_channels)  # what the amplifiers drive now
         self.target = np.zeros(self.coils.n_channels)  # what they ramp toward
+        self._held: HeldField | None = None
         self._contact = False
         # broad phase (_walls_in_reach): recompute on the next step
         self._clear: tuple[float, float, float, Walls, float] = (
@@ -173,7 +175,10 @@ class SimRig(Rig):
         I = np.asarray(currents, dtype=np.float64)
         if I.shape != (self.coils.n_channels,):
             raise ValueError(f"expected {self.coils.n_channels} currents, got shape {I.shape}")
-        self.target = clamp_currents(I, self.target, self.max_current, math.inf)
+        target = clamp_currents(I, self.target, self.max_current, math.inf)
+        if not np.array_equal(target, self.target):
+            self._held = None
+        self.target = target
         return self.target.copy()
 
     def advance(self, duration: float) -> None:
@@ -182,7 +187,7 @@ class SimRig(Rig):
         ramp = self.max_slew_rate * h
         state = tuple(self.state)
         ramping = not np.array_equal(self.driven, self.target)
-        held = self.target * self.coil_gains
+        field: Callable[[float, float], tuple[list[float], Any]]
         for _ in range(n):
             # amplifiers ramp at the slew limit; the step uses the current at its midpoint
             if ramping:
@@ -190,11 +195,12 @@ class SimRig(Rig):
                 drive = 0.5 * (self.driven + nxt) * self.coil_gains
                 self.driven = nxt
                 ramping = not np.array_equal(nxt, self.target)
+                field = partial(self._field, drive)
             else:  # the amplifiers have reached the target (the usual case): hold it
-                drive = held
-            state = discrete_step(
-                state, partial(self._field, drive), self.robot, h, substeps=1, ops=MATH_OPS
-            )
+                if self._held is None:  # the target's field, kept until apply() changes it
+                    self._held = self.grid.held(self.target * self.coil_gains)
+                field = self._held
+            state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
             walls = self._walls_in_reach(state[0], state[1])
             if walls is not None:
                 state, touched = walls.resolve_capsule(
