@@ -293,27 +293,38 @@ def bench_campaign(
     jobs: int = 2,
     quick: bool = False,
     progress: Callable[[str], None] | None = None,
+    feedback: str | None = None,
 ) -> dict[str, Any]:
     """Run the protocols one after the other with ``jobs`` processes, recordings written.
 
     Figures per protocol and in total: trials, wall time, trials per minute, failed trials,
     dropped recorder ticks, control ticks that overran their period, and the recordings' size.
+    ``feedback`` "camera" or "truth" overrides every protocol's ``feedback.camera`` (None:
+    as the files say).
     """
     from pathlib import Path
 
     from magrun.protocol import load_protocol
     from magrun.runner import run_protocol
 
+    if feedback not in (None, "camera", "truth"):
+        raise ValueError(f"feedback must be camera or truth, got {feedback!r}")
     result: dict[str, Any] = {
         "benchmark": "campaign",
         "machine": machine(),
         "jobs": jobs,
         "quick": quick,
+        "feedback": feedback or "as in the protocols",
         "protocols": {},
     }
     total_start = time.perf_counter()
     for path in protocol_files:
         protocol = load_protocol(path)
+        if feedback is not None:
+            camera = feedback == "camera"
+            protocol = protocol.model_copy(
+                update={"feedback": protocol.feedback.model_copy(update={"camera": camera})}
+            )
         if progress is not None:
             progress(protocol.name)
         t0 = time.perf_counter()

@@ -1018,9 +1018,21 @@ def bench_recorder(
     default=None,
     help="Keep the recordings here (replacing its protocol folders) [default: a temp dir].",
 )
+@click.option(
+    "--feedback",
+    type=click.Choice(["camera", "truth"]),
+    default=None,
+    help="Override every protocol's feedback.camera: UNet tracking of rendered frames, or the "
+    "simulator's true pose into the fluoroscopy mimic [default: as the protocols say].",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
 def bench_campaign(
-    protocols: tuple[Path, ...], jobs: int, quick: bool, out: Path | None, as_json: bool
+    protocols: tuple[Path, ...],
+    jobs: int,
+    quick: bool,
+    out: Path | None,
+    feedback: str | None,
+    as_json: bool,
 ) -> None:
     """The paper's campaign: PROTOCOLS [default: protocols/*.yaml] with recordings, timed."""
     import tempfile
@@ -1035,7 +1047,10 @@ def bench_campaign(
         raise InputError("--jobs must be at least 1")
     with tempfile.TemporaryDirectory(prefix="magrun-campaign-") as tmp:
         target = str(out) if out is not None else tmp
-        result = run(files, target, jobs, quick, progress=None if as_json else _say("running"))
+        result = run(
+            files, target, jobs, quick, progress=None if as_json else _say("running"),
+            feedback=feedback,
+        )  # fmt: skip
     if as_json:
         click.echo(json.dumps(result))
         return

@@ -340,6 +340,31 @@ def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
     assert len(list((tmp_path / "tiny").rglob("*.mcap"))) == 4
 
 
+def test_bench_campaign_feedback_override_reaches_the_recordings(
+    runner: CliRunner, tmp_path: Path
+) -> None:
+    """--feedback truth: the trials run without the camera (metadata says so, no frames)."""
+    from mcap.reader import make_reader
+
+    tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
+    args = ["bench", "campaign", str(tiny), "--jobs", "1", "--out", str(tmp_path),
+            "--feedback", "truth", "--json"]  # fmt: skip
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.output)["feedback"] == "truth"
+    files = sorted((tmp_path / "tiny").rglob("*.mcap"))
+    assert len(files) == 4
+    with files[0].open("rb") as fh:
+        reader = make_reader(fh)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        summary = reader.get_summary()
+    assert meta["trial"]["feedback"] == "truth"
+    assert summary is not None
+    topics = {c.topic for c in summary.channels.values()}
+    assert "/camera/image" not in topics
+    assert "/robot/pose/actual" in topics
+
+
 def test_bench_campaign_checks_every_protocol_before_running(
     runner: CliRunner, tmp_path: Path
 ) -> None:

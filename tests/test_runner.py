@@ -105,6 +105,25 @@ def test_mcap_has_the_contract_topics_and_counts(tiny_run: Any) -> None:
         np.testing.assert_allclose(np.diff(times) * 1e-9, dt, atol=1e-6)
 
 
+def test_camera_every_tick_tracks_and_records_every_tick(tmp_path: Path) -> None:
+    """feedback.camera_frames: every_tick: a frame (and a tracked pose) at every tick, while
+    the fluoroscopy mimic still delivers only its 5 Hz frames."""
+    protocol = load_protocol(TINY)
+    protocol = protocol.model_copy(
+        update={
+            "methods": ["baseline2"],
+            "feedback": protocol.feedback.model_copy(update={"camera_frames": "every_tick"}),
+        }
+    )
+    manifest = run_protocol(protocol, tmp_path, jobs=1)
+    entry = next(e for e in manifest["trials"] if e["conditions"]["tracking_rate_hz"] == 5)
+    counts, _, meta = read_mcap(tmp_path / "tiny" / entry["mcap"])
+    n = entry["ticks"]
+    assert counts["/camera/image"] == counts["/robot/pose/tracked"] == n
+    assert counts["/robot/pose/measured"] == math.floor((n - 1) / 25.5 * 5 + 1e-9) + 1
+    assert meta["trial"]["camera_frames"] == "every_tick"
+
+
 def test_poses_round_trip_through_foxglove_pose_in_frame(tiny_run: Any) -> None:
     out, manifest = tiny_run
     _, messages, _ = read_mcap(out / "tiny" / manifest["trials"][0]["mcap"])
