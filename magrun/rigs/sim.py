@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magrun.field.coils import CoilSystem
-from magrun.field.grid import ChannelGrid, HeldField
+from magrun.field.grid import ChannelGrid, GridCells, HeldField
 from magrun.rigs.base import Observation, Rig, clamp_currents
 from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
 from magrun.scene import Walls
@@ -114,6 +114,7 @@ class SimRig(Rig):
             raise ValueError("the field grid was built for other channels than the coil system")
         self.coils = coils
         self.grid = grid
+        self._cells = GridCells(grid)
         self.channel_names = coils.channel_names
         self.max_current = coils.max_current
         self.max_slew_rate = coils.max_slew_rate
@@ -184,21 +185,17 @@ class SimRig(Rig):
     def advance(self, duration: float) -> None:
         n = max(1, round(duration / self.fine_step))
         h = duration / n
-        ramp = self.max_slew_rate * h
         state = tuple(self.state)
-        ramping = not np.array_equal(self.driven, self.target)
+        ramp = self._ramp(n, h)  # the driven currents after each ramping sub-step
         field: Callable[[float, float], tuple[list[float], Any]]
-        for _ in range(n):
-            # amplifiers ramp at the slew limit; the step uses the current at its midpoint
-            if ramping:
-                nxt = clamp_currents(self.target, self.driven, self.max_current, ramp)
-                drive = 0.5 * (self.driven + nxt) * self.coil_gains
-                self.driven = nxt
-                ramping = not np.array_equal(nxt, self.target)
-                field = partial(self._field, drive)
+        for k in range(n):
+            if k < len(ramp):  # the step uses the current at its midpoint
+                drive = 0.5 * (self.driven + ramp[k]) * self.coil_gains
+                self.driven = ramp[k]
+                field = partial(self._cells.read, drive)
             else:  # the amplifiers have reached the target (the usual case): hold it
                 if self._held is None:  # the target's field, kept until apply() changes it
-                    self._held = self.grid.held(self.target * self.coil_gains)
+                    self._held = self._cells.held(self.target * self.coil_gains)
                 field = self._held
             state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
             walls = self._walls_in_reach(state[0], state[1])
@@ -211,6 +208,19 @@ class SimRig(Rig):
                     self._contact = True
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
+
+    def _ramp(self, n: int, h: float) -> FloatArray:
+        """Driven currents after each of the next ``n`` sub-steps of ``h`` s while any channel
+        still ramps (amplifiers move at the slew limit straight to the target), shape
+        (m ≤ n, channels); empty once every channel has reached its target."""
+        delta = self.target - self.driven
+        if not np.any(delta):
+            return np.empty((0, delta.size))
+        reach = np.arange(1, n + 1)[:, None] * (self.max_slew_rate * h)  # (n, 1)
+        done = np.abs(delta) <= reach  # (n, ch): reached by then (exactly the target)
+        path = np.where(done, self.target, self.driven + np.sign(delta) * reach)
+        finished = np.flatnonzero(np.all(done, axis=1))
+        return path[: finished[0] + 1] if finished.size else path
 
     def _walls_in_reach(self, x: float, y: float) -> Walls | None:
         """The walls the body may touch now (None: none), a broad phase before the exact test.
@@ -238,7 +248,3 @@ class SimRig(Rig):
         slack = float(np.min(d))
         self._clear = (x, y, slack, nearby, others)
         return nearby if slack <= 0 else None
-
-    def _field(self, currents: FloatArray, x: float, y: float) -> tuple[list[float], Any]:
-        v = (currents @ self.grid.unit(x, y)).tolist()  # Python floats for MATH_OPS
-        return v[:2], (v[2:4], v[4:6])
