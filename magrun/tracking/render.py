@@ -100,12 +100,13 @@ def _fixed(uv: FloatArray) -> NDArray[np.int32]:
 def inset(polygon: FloatArray, delta: float) -> FloatArray:
     """The convex ``polygon`` (n, 2) with every edge moved inward by ``delta``."""
     p = np.asarray(polygon, dtype=np.float64)
-    edge = np.roll(p, -1, axis=0) - p
-    area2 = float(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+    nxt = np.vstack([p[1:], p[:1]])  # each vertex's successor (np.roll, without its overhead)
+    edge = nxt - p
+    area2 = float(np.sum(p[:, 0] * nxt[:, 1] - nxt[:, 0] * p[:, 1]))
     sign = 1.0 if area2 > 0 else -1.0  # counter-clockwise (in u, v): the inside is to the left
     normal = sign * np.column_stack([-edge[:, 1], edge[:, 0]])
     normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-12)[:, None]
-    before = np.roll(normal, 1, axis=0)  # the edge ending at each vertex
+    before = np.vstack([normal[-1:], normal[:-1]])  # the edge ending at each vertex
     # offset lines meet at v + δ (n₁ + n₂) / (1 + n₁·n₂)
     denom = np.maximum(1.0 + np.sum(before * normal, axis=1), 1e-6)
     return p + delta * (before + normal) / denom[:, None]
