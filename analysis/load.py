@@ -38,7 +38,10 @@ KEYS = ("protocol", "method", *CONDITIONS, "trial")
 #: ``trial`` metadata values that are text (the rest are JSON)
 _TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary"}
 #: what a damaged file's error adds (a recorder killed mid-trial leaves a file without index)
-RECOVER_HINT = "the file is truncated or damaged (a recorder that died leaves it unindexed)"
+RECOVER_HINT = (
+    "the file is truncated or damaged (a recorder that died leaves it unindexed); "
+    "`magrun recover IN.mcap OUT.mcap` rebuilds a readable copy"
+)
 
 
 class RecordingError(Exception):

@@ -222,6 +222,7 @@ def test_magrun_figures_goes_on_past_a_damaged_recording(tmp_path: Path) -> None
     assert res.exit_code == 1
     assert f"unreadable: {broken}" in res.output
     assert "truncated or damaged" in res.output
+    assert "magrun recover" in res.output
     assert "Traceback" not in res.output
     assert (tmp_path / "figs" / "prediction.png").is_file()
     with (tmp_path / "figs" / "results.csv").open() as fh:

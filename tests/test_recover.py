@@ -1,0 +1,166 @@
+"""Crash-safe recordings: ``magrun recover`` on cut, damaged and SIGKILLed MCAP files."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from mcap.reader import make_reader
+
+from magrun.cli import cli
+from magrun.control.base import ControllerStatus
+from magrun.loop import Tick
+from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.recover import recover
+
+STATUS = ControllerStatus(0.001, 1, True, "", "0")
+DT = 1 / 25.5
+
+
+def _tick(k: int) -> Tick:
+    pose = np.array([1e-4 * k, -1e-4 * k, 0.01 * k])
+    return Tick(
+        k=k, t=k * DT, actual=pose, tracked=pose, measured=pose if k % 8 == 0 else None,
+        estimated=pose, predicted=pose if k else None, desired=pose,
+        currents=np.full(8, float(k % 30)), status=STATUS, compute_time=0.002,
+    )  # fmt: skip
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with path.open("rb") as fh:
+        return [(c.topic, m.log_time, m.data) for _, c, m in make_reader(fh).iter_messages()]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """10 s of trial at 25.5 Hz, chunks closed every second."""
+    base = tmp_path_factory.mktemp("rec") / "trial-0"
+    setup = RecordingSetup(trial={"method": "proposed", "seed": 1}, channel_names=tuple("abcdefgh"))
+    with TrialRecorder(base, setup, flush_s=1.0) as rec:
+        for k in range(256):
+            rec.log(_tick(k))
+    assert rec.stats.ticks_written == 256
+    return rec.mcap_path
+
+
+def test_a_complete_file_is_copied_whole(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "copy.mcap"
+    report = recover(recording, out)
+    assert report.complete
+    assert report.problem == ""
+    assert report.bytes_lost == 0
+    assert _messages(out) == _messages(recording)
+    with out.open("rb") as fh:
+        meta = {m.name: m.metadata for m in make_reader(fh).iter_metadata()}
+    assert meta["trial"]["method"] == "proposed"
+    assert meta["recovery"]["complete"] == "true"
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_cut_file_keeps_every_closed_chunk(recording: Path, tmp_path: Path, seed: int) -> None:
+    """Cut at a random byte: the recovered messages are the original's first ones, and every
+    chunk that ended before the cut is among them (so at most one chunk, ≤ 1 s, is lost)."""
+    data = recording.read_bytes()
+    with recording.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data_end = chunks[-1].chunk_start_offset + chunks[-1].chunk_length
+    cut = int(np.random.default_rng(seed).integers(chunks[0].chunk_start_offset, data_end))
+    cut_file = tmp_path / "cut.mcap"
+    cut_file.write_bytes(data[:cut])
+    out = tmp_path / "out.mcap"
+    report = recover(cut_file, out)
+    assert not report.complete
+    assert report.problem
+    original = _messages(recording)
+    recovered = _messages(out)
+    assert recovered == original[: len(recovered)]
+    # every message before the chunk the cut fell in is back; that chunk spans ≤ 1 s + a tick
+    open_chunk = next(c for c in chunks if c.chunk_start_offset + c.chunk_length > cut)
+    before = [m for m in original if m[1] < open_chunk.message_start_time]
+    assert len(recovered) >= len(before)
+    for c in chunks:
+        assert c.message_end_time - c.message_start_time <= (1.0 + DT) * 1e9
+
+
+def test_not_an_mcap_file_is_refused_cleanly(tmp_path: Path) -> None:
+    bad = tmp_path / "notes.mcap"
+    bad.write_text("these are not the bytes you are looking for\n")
+    with pytest.raises(ValueError, match="not an MCAP file"):
+        recover(bad, tmp_path / "out.mcap")
+    result = CliRunner().invoke(cli, ["recover", str(bad), str(tmp_path / "out.mcap")])
+    assert result.exit_code == 2
+    assert "not an MCAP file" in result.output
+    assert not (tmp_path / "out.mcap").exists()
+
+
+def test_recover_never_overwrites_its_input(recording: Path) -> None:
+    with pytest.raises(ValueError, match="never over the original"):
+        recover(recording, recording)
+
+
+def test_cli_recover_json(recording: Path, tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[: recording.stat().st_size // 2])
+    out = tmp_path / "fixed.mcap"
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(out), "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["complete"] is False
+    assert doc["messages"] == len(_messages(out)) > 0
+    assert doc["per_topic"]["/robot/pose/desired"] > 0
+
+
+CHILD = """
+import sys, time
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_recover import _tick
+from magrun.recording import RecordingSetup, TrialRecorder
+setup = RecordingSetup(trial={{"method": "proposed"}}, channel_names=tuple("abcdefgh"))
+rec = TrialRecorder({base!r}, setup, flush_s=1.0).start()
+k = 0
+while True:
+    rec.log(_tick(k))
+    print(k, flush=True)
+    k += 1
+    time.sleep({period})
+"""
+
+
+def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
+    """A recorder process killed with SIGKILL mid-trial: ``recover`` gets back everything up
+    to at most 1 s of trial time (plus one tick and the writer's queue) before the kill."""
+    period = 0.004  # ~10× faster than real time: 1 s of trial time every 0.16 s
+    code = CHILD.format(tests=str(Path(__file__).parent), base=str(tmp_path / "t"), period=period)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, env=env)
+    assert child.stdout is not None
+    last = -1
+    t0 = time.monotonic()
+    while last < 120 and time.monotonic() - t0 < 120:  # ~4.7 s of trial time logged
+        line = child.stdout.readline()
+        if not line:
+            break
+        last = int(line)
+    child.send_signal(signal.SIGKILL)
+    rest = child.stdout.read().split()  # ticks logged after the last line read
+    child.stdout.close()
+    child.wait()
+    last = max([last, *map(int, rest)])
+    assert last >= 120, "the recorder process did not get going"
+    report = recover(tmp_path / "t.mcap", tmp_path / "r.mcap")
+    assert not report.complete
+    assert report.last_time_ns is not None
+    lost_s = last * DT - report.last_time_ns / 1e9
+    assert 0 <= lost_s <= 1.0 + 3 * DT  # the flush period, the tick in hand, one of slack
+    assert report.per_topic["/robot/pose/desired"] >= last - round((1.0 + 3 * DT) / DT)
