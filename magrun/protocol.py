@@ -42,10 +42,15 @@ from pydantic import (
     Field,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 
 from magrun.control.methods import METHODS
 from magrun.yamlio import load_yaml_model
+
+#: most trials one protocol file may expand to: a sweep beyond it is refused before anything
+#: runs (10,000 trials of the paper's 52 s is six days of rig time)
+MAX_TRIALS = 10_000
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegativeFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -315,7 +320,25 @@ class Protocol(_Strict):
             _check_rates([conditions.tracking_rate_hz], info)
         return conditions
 
+    @model_validator(mode="after")
+    def _not_too_many_trials(self) -> Protocol:
+        n = self.n_trials()
+        if n > MAX_TRIALS:
+            sizes = " × ".join(str(len(v)) for _, v in self.sweep.items()) or "1"
+            raise ValueError(
+                f"{n:,} trials (sweep {sizes} conditions × {len(self.methods)} methods × "
+                f"{self.trials} trials): more than the {MAX_TRIALS:,} one protocol may run; "
+                "split it into several protocol files"
+            )
+        return self
+
     # ---- expansion ---------------------------------------------------------------------
+
+    def n_trials(self, quick: bool = False) -> int:
+        """How many trials :meth:`expand` gives, without building them."""
+        if quick:
+            return len(self.expand(quick=True))
+        return math.prod(len(v) for _, v in self.sweep.items()) * len(self.methods) * self.trials
 
     def expand(self, quick: bool = False, seed: int | None = None) -> list[Trial]:
         """Every trial, in a fixed order: condition, then method, then repeat."""

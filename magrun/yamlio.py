@@ -81,8 +81,12 @@ def parse_yaml_model(
         where = f"{source}:{mark.line + 1}" if mark is not None else source
         problem = getattr(exc, "problem", None) or str(exc)
         raise YamlModelError([f"{where}: not valid YAML: {problem}"]) from exc
+    except RecursionError as exc:  # PyYAML's parser recurses once per nesting level
+        raise YamlModelError([f"{source}: not valid YAML: nested too deeply"]) from exc
     try:
         return model.model_validate(data if data is not None else {}, context=context)
+    except RecursionError as exc:
+        raise YamlModelError([f"{source}: nested too deeply to validate"]) from exc
     except ValidationError as exc:
         problems = []
         for err in exc.errors():
