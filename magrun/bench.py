@@ -416,3 +416,93 @@ def bench_tick(
         **medians,
         "sum_of_medians_ms": sum(medians.values()),
     }
+
+
+#: the recording child of :func:`bench_sigkill`: logs synthetic ticks at the trial's pace,
+#: printing each tick's index once it is handed to the recorder
+_RECORDING_CHILD = """
+import sys, time
+import numpy as np
+from magrun.control.base import ControllerStatus
+from magrun.loop import Tick
+from magrun.recording import RecordingSetup, TrialRecorder
+dt, base = float(sys.argv[1]), sys.argv[2]
+setup = RecordingSetup(trial={"method": "bench"}, channel_names=tuple("abcdefgh"))
+rec = TrialRecorder(base, setup, flush_s=1.0).start()
+status = ControllerStatus(0.001, 1, True, "", "0")
+start = time.perf_counter()
+k = 0
+while True:
+    p = np.array([1e-4 * k, 0.0, 0.0])
+    rec.log(Tick(k=k, t=k * dt, actual=p, tracked=p, measured=p if k % 8 == 0 else None,
+                 estimated=p, predicted=p, desired=p, currents=np.zeros(8), status=status,
+                 compute_time=0.001))
+    print(k, flush=True)
+    k += 1
+    time.sleep(max(0.0, start + k * dt - time.perf_counter()))
+"""
+
+
+def bench_sigkill(
+    kills: int = 20, dt: float = 1 / 25.5, window: tuple[float, float] = (1.0, 6.0), seed: int = 0
+) -> dict[str, Any]:
+    """Kill a recording process with SIGKILL at random moments and recover each file.
+
+    Each run starts a process that records ticks of ``dt`` s at real-time pace (the trial
+    recorder, one chunk per second of trial time), kills it after a uniformly random time
+    in ``window`` s, then recovers the file (:func:`magrun.recover.recover`). Lost = ticks handed to
+    the recorder (printed by the child before it died) minus ticks recovered, in ticks and
+    in seconds of trial time.
+    """
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    from magrun.recover import recover
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="magrun-sigkill-") as tmp:
+        for i in range(kills):
+            base = Path(tmp) / f"kill-{i}"
+            child = subprocess.Popen(
+                [sys.executable, "-c", _RECORDING_CHILD, str(dt), str(base)],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            assert child.stdout is not None
+            first = child.stdout.readline()  # imports done, recording
+            wait = float(rng.uniform(*window))
+            time.sleep(wait)
+            child.send_signal(signal.SIGKILL)
+            printed = [first, *child.stdout.read().split()]
+            child.stdout.close()
+            child.wait()
+            handed = max(int(x) for x in printed if x.strip()) + 1
+            report = recover(base.with_suffix(".mcap"), base.with_name(base.name + "-r.mcap"))
+            got = report.per_topic.get("/robot/pose/desired", 0)
+            rows.append(
+                {
+                    "killed_after_s": wait,
+                    "ticks_logged": handed,
+                    "ticks_recovered": got,
+                    "ticks_lost": handed - got,
+                    "trial_s_lost": (handed - got) * dt,
+                    "messages_recovered": report.messages,
+                    "bytes_lost": report.bytes_lost,
+                }
+            )
+    lost = np.array([r["trial_s_lost"] for r in rows])
+    return {
+        "benchmark": "sigkill",
+        "machine": machine(),
+        "kills": kills,
+        "tick_s": dt,
+        "flush_s": 1.0,
+        "max_trial_s_lost": float(lost.max()),
+        "median_trial_s_lost": float(np.median(lost)),
+        "max_ticks_lost": int(max(r["ticks_lost"] for r in rows)),
+        "runs": rows,
+    }

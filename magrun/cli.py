@@ -1061,6 +1061,26 @@ def bench_recorder(
     )
 
 
+@bench.command("sigkill")
+@click.option("--kills", default=20, show_default=True, help="Processes to kill.")
+@click.option("--seed", default=0, show_default=True, help="Seeds the kill moments.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_sigkill(kills: int, seed: int, as_json: bool) -> None:
+    """Recordings after SIGKILL: kill a recording process at random moments, recover, count."""
+    from magrun.bench import bench_sigkill as run
+
+    if kills < 1:
+        raise InputError("--kills must be at least 1")
+    result = run(kills=kills, seed=seed)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    click.echo(
+        f"{kills} kills: trial time lost max {result['max_trial_s_lost']:.3f} s, median "
+        f"{result['median_trial_s_lost']:.3f} s (chunks closed every {result['flush_s']} s)"
+    )
+
+
 @bench.command("campaign")
 @click.argument("protocols", nargs=-1, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--jobs", default=2, show_default=True, help="Trials run in parallel.")

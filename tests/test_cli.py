@@ -326,6 +326,17 @@ def test_bench_recorder_json(runner: CliRunner) -> None:
     assert c["p99_added_ms"] == pytest.approx(c["p99_logging_ms"] - c["p99_bare_ms"])
 
 
+def test_bench_sigkill_json(runner: CliRunner) -> None:
+    """One killed recording process, recovered: the figures add up, ≤ 1 s + 2 ticks lost."""
+    result = runner.invoke(cli, ["bench", "sigkill", "--kills", "1", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    (run,) = doc["runs"]
+    assert run["ticks_logged"] > 25  # killed after ≥ 1 s of trial at 25.5 Hz
+    assert run["ticks_lost"] == run["ticks_logged"] - run["ticks_recovered"]
+    assert 0 <= doc["max_trial_s_lost"] <= doc["flush_s"] + 2 * doc["tick_s"]
+
+
 def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
     tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
     args = ["bench", "campaign", str(tiny), "--jobs", "1", "--out", str(tmp_path), "--json"]
