@@ -765,6 +765,10 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
 )  # fmt: skip
 @click.option("--ray-address", help="Ray cluster to join (default: start a local instance).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT/<protocol>/ if it exists.")
+@click.option(
+    "--resume", is_flag=True,
+    help="Continue the run in OUT/<protocol>/: trials already ok are kept, the rest run.",
+)  # fmt: skip
 def run(
     protocol_file: Path,
     out: Path,
@@ -775,27 +779,35 @@ def run(
     executor: str,
     ray_address: str | None,
     overwrite: bool,
+    resume: bool,
 ) -> None:
     """Run every trial of a protocol and record each to MCAP and Rerun.
 
     The protocol is validated first; a bad file exits with status 2 before anything runs.
     Writes OUT/<protocol>/<condition>/trial-<k>.{mcap,rrd} and OUT/<protocol>/manifest.json,
     then prints a summary per condition. Exit status 1 when a trial failed (the manifest
-    holds its error; the other trials' recordings are complete).
+    holds its error; the other trials' recordings are complete). SIGINT (Ctrl-C) or SIGTERM
+    ends the running trials cleanly (zero currents, recordings finished and indexed, marked
+    "interrupted" in the manifest) and exits with 130 / 143; --resume runs the rest.
     """
+    from magrun import interrupt
     from magrun.runner import RunError, local_executor, ray_executor, run_protocol
 
     (protocol,) = _load_protocols((protocol_file,))
     n = len(protocol.expand(quick=quick, seed=seed))
     chosen = ray_executor(ray_address, jobs) if executor == "ray" else local_executor(jobs)
     progress = _RunProgress(protocol.name, n)
+    if resume and overwrite:
+        raise InputError("--resume and --overwrite exclude each other")
     t0 = time.perf_counter()
+    interrupt.clear()
     try:
-        manifest = run_protocol(
-            protocol, out, quick=quick, seed=seed, jobs=jobs, rig=rig, executor=chosen,
-            overwrite=overwrite, protocol_file=str(protocol_file), on_trial=progress.trial_done,
-            progress=progress.tick,
-        )  # fmt: skip
+        with interrupt.handling():
+            manifest = run_protocol(
+                protocol, out, quick=quick, seed=seed, jobs=jobs, rig=rig, executor=chosen,
+                overwrite=overwrite, protocol_file=str(protocol_file),
+                on_trial=progress.trial_done, progress=progress.tick, resume=resume,
+            )  # fmt: skip
     except RunError as exc:
         raise InputError(str(exc)) from exc
     finally:
@@ -809,6 +821,15 @@ def run(
         f"{len(manifest['trials'])} trials in {wall:.0f} s -> {out / protocol.name}"
         + (f"; {dropped} ticks dropped by the recorder" if dropped else "")
     )
+    stopped = interrupt.requested()
+    if stopped is not None:
+        left = sum(e["status"] != "ok" for e in manifest["trials"])
+        click.echo(
+            f"stopped by {manifest.get('interrupted', stopped)}: currents zeroed, recordings "
+            f"closed; {left} trial(s) not complete. Continue with --resume.",
+            err=True,
+        )
+        sys.exit(interrupt.exit_status(stopped))
     if failed:
         raise click.ClickException(f"{failed} trial(s) failed; see {out / protocol.name}")
 

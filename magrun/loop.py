@@ -64,6 +64,7 @@ class TrialLog:
     currents: FloatArray  # (n, n_channels), as applied
     status: list[ControllerStatus]
     compute_time: FloatArray  # (n,) s, tracking + feedback + controller per tick
+    interrupted: bool = False  # ended early by a stop request (zero currents commanded)
 
     @property
     def position_error(self) -> FloatArray:
@@ -127,6 +128,7 @@ def run_trial(
     on_tick: Callable[[Tick], None] | None = None,
     charge_compute: bool = False,
     clock: Callable[[], float] = time.perf_counter,
+    stop: Callable[[], bool] | None = None,
 ) -> TrialLog:
     """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
 
@@ -146,6 +148,9 @@ def run_trial(
 
     ``on_tick`` receives a :class:`Tick` after each tick's currents are applied (the
     recorder's hook); it runs on the loop's thread, so it must be quick.
+
+    ``stop()`` is asked after every tick: when true, the loop commands zero currents and
+    ends the trial early (``TrialLog.interrupted``; :mod:`magrun.interrupt`).
     """
     dt = controller.dt
     total = reference.duration + 1.0 if duration is None else duration
@@ -162,6 +167,7 @@ def run_trial(
     prediction: FloatArray | None = None
     offsets = np.arange(horizon + 1) * dt
     k, t = 0, 0.0
+    interrupted = False
     while t <= total + 1e-9:
         take = tracker is None or frame_due is None or frame_due(t)
         obs = rig.observe(frame=take and tracker is not None)
@@ -211,7 +217,11 @@ def run_trial(
         k += 1
         if progress is not None:
             progress(min(k, n_nominal), n_nominal)
-    if progress is not None and k < n_nominal:
+        if stop is not None and stop():
+            rig.apply(np.zeros(len(rig.channel_names)))  # the first thing: no current
+            interrupted = True
+            break
+    if progress is not None and k < n_nominal and not interrupted:
         progress(n_nominal, n_nominal)
     arrays = {name: np.stack(rows[name]) for name in _LOG_ARRAYS}
     return TrialLog(
@@ -219,6 +229,7 @@ def run_trial(
         t=arrays["t"][:, 0],
         status=statuses,
         compute_time=np.array(compute),
+        interrupted=interrupted,
     )
 
 

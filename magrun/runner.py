@@ -35,13 +35,14 @@ import shutil
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from magrun import interrupt
 from magrun.atomic import write_text
 from magrun.protocol import Protocol, Trial
 
@@ -159,6 +160,8 @@ def execute_trial(
     from magrun.tracking.tracker import Tracker
 
     entry = manifest_entry(trial)
+    if interrupt.requested() is not None:
+        return entry  # stopping: a trial not yet started stays pending (--resume runs it)
     t0 = time.perf_counter()
     base = Path(out) / trial.relpath
     recorder = None
@@ -217,12 +220,17 @@ def execute_trial(
                 tracker=tracker, on_tick=recorder.log,
                 frame_due=mimic.due if protocol.feedback.camera_frames == "fluoroscopy" else None,
                 charge_compute=protocol.controller.charge_compute_time and rig == "sim",
+                stop=lambda: interrupt.requested() is not None,
             )  # fmt: skip
-        stats = recorder.close("ok")
+        stats = recorder.close("interrupted" if log.interrupted else "ok")
         recorder = None
+        status = "interrupted" if log.interrupted else "ok"
+        error = stats.error
+        if log.interrupted and not error:
+            error = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"
         entry.update(
-            status="ok" if not stats.error else "failed",
-            error=stats.error,
+            status=status if not stats.error else "failed",
+            error=error,
             ticks=len(log.t),
             dropped_ticks=stats.dropped_ticks,
             rms_position_mm=log.rms_position_mm,
@@ -239,6 +247,15 @@ def execute_trial(
             recorder.close("failed")
     entry["wall_s"] = time.perf_counter() - t0
     return entry
+
+
+def _signal_name(signum: int | None) -> str:
+    import signal
+
+    try:
+        return signal.Signals(signum).name if signum is not None else "a stop request"
+    except ValueError:
+        return f"signal {signum}"
 
 
 def manifest_entry(trial: Trial) -> dict[str, Any]:
@@ -293,6 +310,7 @@ def _worker_init() -> None:
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    interrupt.install_in_worker()  # SIGINT / SIGTERM end the worker's trial cleanly
 
 
 def _pool_progress(q: Any) -> ProgressFn:
@@ -323,6 +341,8 @@ def local_executor(jobs: int = 1) -> Executor:
     ) -> Iterator[dict[str, Any]]:
         if jobs <= 1:
             for trial in trials:
+                if interrupt.requested() is not None:
+                    return  # the rest stay pending (magrun run --resume)
                 yield execute_trial(trial, out, rig, progress)
             return
         ctx = multiprocessing.get_context("spawn")  # no forked torch / casadi state
@@ -331,7 +351,16 @@ def local_executor(jobs: int = 1) -> Executor:
             with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
                 futures = {pool.submit(_run_in_worker, t, str(out), rig, q): t for t in trials}
                 pending = set(futures)
+                forwarded = False
                 while pending:
+                    if interrupt.requested() is not None and not forwarded:
+                        forwarded = True  # running trials end cleanly; queued ones never start
+                        for fut in pending:
+                            fut.cancel()
+                        _signal_workers(pool, interrupt.requested())
+                        pending = {f for f in pending if not f.cancelled()}
+                        if not pending:
+                            break
                     done, pending = cf.wait(pending, timeout=0.2)
                     while q is not None and not q.empty():
                         assert progress is not None
@@ -340,6 +369,16 @@ def local_executor(jobs: int = 1) -> Executor:
                         yield _result_or_failure(fut.result, futures[fut])
 
     return run
+
+
+def _signal_workers(pool: cf.ProcessPoolExecutor, signum: int | None) -> None:
+    """Pass a stop signal on to the pool's worker processes (a terminal's Ctrl-C reaches
+    them itself; ``kill`` of the parent does not)."""
+    import signal
+
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        with suppress(OSError):  # already gone
+            os.kill(proc.pid, signum or signal.SIGTERM)
 
 
 def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Executor:
@@ -399,11 +438,16 @@ def run_protocol(
     protocol_file: str | None = None,
     on_trial: Callable[[dict[str, Any]], None] | None = None,
     progress: ProgressFn | None = None,
+    resume: bool = False,
 ) -> dict[str, Any]:
     """Run every trial of ``protocol``; returns the manifest (also written to disk).
 
     Refuses (:class:`RunError`) to write into an existing ``OUT/<protocol>`` folder unless
     ``overwrite``, which deletes it first: recordings are never silently mixed or replaced.
+    ``resume`` continues the run recorded there instead (same protocol, seed and --quick):
+    trials whose status is ``ok`` and whose MCAP exists are kept, the others run again.
+    A stop signal (:mod:`magrun.interrupt`) ends the running trials cleanly, starts no new
+    one and records the signal under ``interrupted`` in the manifest.
     """
     if rig not in RIGS:
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
@@ -411,12 +455,18 @@ def run_protocol(
         _make_rig(rig, protocol.robot, None, 0, False)  # fails early and clearly
     out = Path(out)
     folder = out / protocol.name
+    path = folder / "manifest.json"
+    previous: dict[str, Any] | None = None
     if folder.exists() and any(folder.iterdir()):
-        if not overwrite:
+        if resume:
+            previous = _resumable(path, protocol, quick, seed)
+        elif not overwrite:
             raise RunError(
-                f"{folder} already holds recordings; choose another --out or pass --overwrite"
+                f"{folder} already holds recordings; choose another --out, pass --overwrite, "
+                "or --resume an interrupted run"
             )
-        shutil.rmtree(folder)
+        else:
+            shutil.rmtree(folder)
     trials = protocol.expand(quick=quick, seed=seed)
     from magrun.recording import software_versions
 
@@ -431,8 +481,14 @@ def run_protocol(
         "software": software_versions(),
         "trials": [manifest_entry(t) for t in trials],
     }
-    path = folder / "manifest.json"
     index = {e["path"]: i for i, e in enumerate(manifest["trials"])}
+    if previous is not None:
+        for old in previous.get("trials", []):
+            done = old.get("status") == "ok" and (folder / str(old.get("mcap", ""))).is_file()
+            if done and old.get("path") in index:
+                manifest["trials"][index[old["path"]]] = old
+        kept = {e["path"] for e in manifest["trials"] if e.get("status") == "ok"}
+        trials = [t for t in trials if manifest_entry(t)["path"] not in kept]
     write_manifest(path, manifest)
     run = executor or local_executor(jobs)
     for entry in run(trials, out, rig, progress):
@@ -441,7 +497,27 @@ def run_protocol(
         write_manifest(path, manifest)
         if on_trial is not None:
             on_trial(entry)
+    if interrupt.requested() is not None:
+        manifest["interrupted"] = _signal_name(interrupt.requested())
+        write_manifest(path, manifest)
     return manifest
+
+
+def _resumable(path: Path, protocol: Protocol, quick: bool, seed: int | None) -> dict[str, Any]:
+    """The manifest of the run to resume in ``path``'s folder, checked to be this run's."""
+    try:
+        previous: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise RunError(f"{path}: no readable manifest to resume from ({exc})") from exc
+    want = {"protocol": protocol.name, "quick": quick,
+            "seed": protocol.seed if seed is None else seed}  # fmt: skip
+    have = {k: previous.get(k) for k in want}
+    if have != want:
+        raise RunError(
+            f"{path} records another run ({have}), not this one ({want}); "
+            "choose another --out or pass --overwrite"
+        )
+    return previous
 
 
 def write_manifest(path: Path, manifest: dict[str, Any]) -> None:

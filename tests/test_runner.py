@@ -23,7 +23,7 @@ from magrun.loop import Tick, run_trial
 from magrun.protocol import load_protocol
 from magrun.recording import TOPICS, RecordingSetup, TrialRecorder, yaw_of
 from magrun.rigs.sim import SimRig
-from magrun.runner import local_executor, ray_executor, run_protocol
+from magrun.runner import RunError, local_executor, ray_executor, run_protocol
 from magrun.scene import s_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -381,3 +381,101 @@ def test_a_dead_worker_becomes_a_failed_trial_not_a_crashed_run() -> None:
     assert entry["status"] == "failed"
     assert "terminated abruptly" in entry["error"]
     assert entry["path"] == "baseline3_rate-5hz/trial-0"
+
+
+# -- stopping and resuming ----------------------------------------------------------------------
+
+
+def _long_tiny(tmp_path: Path, duration_s: float = 1.0) -> Path:
+    text = TINY.read_text().replace("duration_s: 1.0", f"duration_s: {duration_s}")
+    path = tmp_path / "tiny.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_a_stop_request_ends_the_trial_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
+    """Stop requested at tick 10 of the first trial: it ends with its recordings indexed and
+    marked interrupted, no other trial starts; --resume keeps nothing unfinished and runs all."""
+    import signal
+
+    from magrun import interrupt
+
+    protocol = load_protocol(_long_tiny(tmp_path))
+    interrupt.clear()
+
+    def progress(relpath: str, done: int, total: int) -> None:
+        if done == 10:
+            interrupt.request(signal.SIGTERM)
+
+    try:
+        manifest = run_protocol(protocol, tmp_path / "out", jobs=1, progress=progress)
+        assert manifest["interrupted"] == "SIGTERM"
+        statuses = [e["status"] for e in manifest["trials"]]
+        assert statuses == ["interrupted", "pending", "pending", "pending"]
+        first = manifest["trials"][0]
+        assert first["ticks"] == 10
+        assert "SIGTERM" in first["error"]
+        counts, _, meta = read_mcap(tmp_path / "out" / "tiny" / first["mcap"])  # indexed
+        assert counts["/robot/pose/actual"] == 10
+        assert meta["recorder"]["status"] == "interrupted"
+        with pytest.raises(RunError, match="--resume"):
+            run_protocol(protocol, tmp_path / "out", jobs=1)
+    finally:
+        interrupt.clear()
+    resumed = run_protocol(protocol, tmp_path / "out", jobs=1, resume=True)
+    assert [e["status"] for e in resumed["trials"]] == ["ok"] * 4
+    assert "interrupted" not in resumed
+    counts, _, _ = read_mcap(tmp_path / "out" / "tiny" / resumed["trials"][0]["mcap"])
+    assert counts["/robot/pose/actual"] == resumed["trials"][0]["ticks"] > 10
+    # a second resume finds everything done and runs nothing
+    mtimes = {p: p.stat().st_mtime_ns for p in (tmp_path / "out" / "tiny").rglob("*.mcap")}
+    again = run_protocol(protocol, tmp_path / "out", jobs=1, resume=True)
+    assert [e["status"] for e in again["trials"]] == ["ok"] * 4
+    assert {p: p.stat().st_mtime_ns for p in mtimes} == mtimes
+
+
+def test_resume_refuses_another_runs_folder(tmp_path: Path) -> None:
+    protocol = load_protocol(TINY)
+    run_protocol(protocol, tmp_path, jobs=1, quick=True)
+    with pytest.raises(RunError, match="records another run"):
+        run_protocol(protocol, tmp_path, jobs=1, resume=True)  # not --quick this time
+
+
+@pytest.mark.parametrize(
+    ("signum", "status", "jobs"), [("SIGTERM", 143, 1), ("SIGINT", 130, 1), ("SIGTERM", 143, 2)]
+)
+def test_magrun_run_exits_128_plus_the_signal(
+    tmp_path: Path, signum: str, status: int, jobs: int
+) -> None:
+    """A real signal to a running `magrun run` (to the parent only, also with worker
+    processes): exit status 128 + n, the manifest marks the running trials, and their MCAP
+    files are complete (indexed)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    path = _long_tiny(tmp_path, duration_s=60.0)
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magrun.cli", "run", str(path), "--out", str(out),
+         "--jobs", str(jobs)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not list(out.rglob("*.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)  # into the first trial
+    proc.send_signal(getattr(signal, signum))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == status, err
+    assert "--resume" in err
+    manifest = json.loads((out / "tiny" / "manifest.json").read_text())
+    assert manifest["interrupted"] == signum
+    stopped = [e for e in manifest["trials"] if e["status"] == "interrupted"]
+    assert 1 <= len(stopped) <= jobs
+    assert {e["status"] for e in manifest["trials"]} <= {"interrupted", "pending"}
+    for entry in stopped:
+        counts, _, meta = read_mcap(out / "tiny" / entry["mcap"])
+        assert counts["/robot/pose/actual"] == entry["ticks"]
+        assert meta["recorder"]["status"] == "interrupted"
