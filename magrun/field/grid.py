@@ -4,7 +4,9 @@ A campaign integrates millions of 1 ms plant steps, so the plant must not evalua
 Biot–Savart sum (or even a SciPy interpolator, ~50 µs a call) per step. :class:`ChannelGrid`
 rotates the reference ("FEA") maps into the workspace frame once, storing for every grid node
 and channel ``(Bx, By, ∂Bx/∂x, ∂Bx/∂y, ∂By/∂x, ∂By/∂y)`` per ampere, and
-:meth:`ChannelGrid.field` reads one point with a 2×2 gather: a few microseconds.
+:meth:`ChannelGrid.field` reads one point with a 2×2 gather: a few microseconds. The plant
+reads through :class:`GridCells`, which keeps each visited cell's corners (and, for held
+currents, their contraction with the currents: :class:`HeldField`).
 
     >>> from magrun.field.grid import ChannelGrid
     >>> grid = ChannelGrid.load()
