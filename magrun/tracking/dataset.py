@@ -14,6 +14,7 @@ show no robot at all, so the model learns to stay quiet on an empty frame.
 from __future__ import annotations
 
 import csv
+import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -132,19 +133,31 @@ def load_annotations(path: str | Path) -> list[tuple[str, FloatArray]]:
     """
     path = Path(path)
     rows: list[tuple[str, FloatArray]] = []
-    with path.open(newline="", encoding="utf-8") as f:
-        reader = csv.DictReader(f)
-        missing = [c for c in ANNOTATION_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise ValueError(f"{path}:1: missing column(s) {', '.join(missing)}")
-        for line, row in enumerate(reader, start=2):
-            values = []
-            for col in ANNOTATION_COLUMNS[1:]:
-                try:
-                    values.append(float(row[col]))
-                except (TypeError, ValueError):
-                    raise ValueError(f"{path}:{line}: column {col!r}: not a number") from None
-            rows.append((row["image"], np.asarray(values).reshape(3, 2)))
+    line = 1
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            missing = [c for c in ANNOTATION_COLUMNS if c not in (reader.fieldnames or [])]
+            if missing:
+                raise ValueError(f"{path}:1: missing column(s) {', '.join(missing)}")
+            for row in reader:
+                line = reader.line_num
+                values = []
+                for col in ANNOTATION_COLUMNS[1:]:
+                    try:
+                        value = float(row[col])
+                    except (TypeError, ValueError):
+                        raise ValueError(f"{path}:{line}: column {col!r}: not a number") from None
+                    if not math.isfinite(value):
+                        raise ValueError(f"{path}:{line}: column {col!r}: not a finite number")
+                    values.append(value)
+                rows.append((row["image"], np.asarray(values).reshape(3, 2)))
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from None
+    except csv.Error as exc:
+        raise ValueError(f"{path}:{line}: not readable as CSV: {exc}") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read: {exc}") from None
     if not rows:
         raise ValueError(f"{path}: no annotated frames")
     return rows

@@ -1,0 +1,86 @@
+"""Hostile input files other than protocols: COMSOL field exports and tracker annotations.
+
+Whatever the bytes, the readers raise their one documented error, naming the file, or
+return data; nothing is ever executed from an input file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from magrun.field.comsol import ComsolFormatError, read_comsol_map
+from magrun.tracking.dataset import load_annotations
+
+FUZZ = settings(
+    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+
+HEADER = "% Model: x\n% Length unit: mm\n% x  y  mf.Bx (T)  mf.By (T)\n"
+numbers = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**40), 10**40).map(str),
+    st.sampled_from(["", "x", "1e999", "-0", "0x10", "1,5", "nan", "%", "\t"]),
+)
+rows = st.lists(st.lists(numbers, min_size=0, max_size=6).map(" ".join), max_size=12)
+
+
+def _read_comsol(path: Path) -> None:
+    message = None
+    try:
+        read_comsol_map(path)
+    except ComsolFormatError as exc:  # the one allowed failure
+        message = str(exc)
+    assert message is None or message.startswith(str(path))
+
+
+@FUZZ
+@given(body=rows, header=st.sampled_from([HEADER, "", "% x y Bx By\n", "% x y z Bx By Bz\n"]))
+def test_comsol_rows_of_anything(tmp_path: Path, body: list[str], header: str) -> None:
+    path = tmp_path / "map.txt"
+    path.write_text(header + "\n".join(body) + "\n")
+    _read_comsol(path)
+
+
+@FUZZ
+@given(data=st.binary(max_size=600))
+def test_comsol_any_bytes(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "map.txt"
+    path.write_bytes(data)
+    _read_comsol(path)
+
+
+COLUMNS = "image,tail_u,tail_v,centre_u,centre_v,head_u,head_v,comment"
+cells = st.one_of(numbers, st.text(max_size=12), st.just('"quoted, cell"'))
+csv_rows = st.lists(st.lists(cells, min_size=0, max_size=9).map(",".join), max_size=10)
+
+
+def _read_annotations(path: Path) -> None:
+    message = None
+    try:
+        labels = load_annotations(path)
+    except ValueError as exc:  # the one allowed failure
+        message = str(exc)
+    if message is None:
+        assert all(np.all(np.isfinite(points)) for _, points in labels)
+    else:
+        assert message.startswith(str(path))
+
+
+@FUZZ
+@given(body=csv_rows, header=st.sampled_from([COLUMNS, "image,tail_u", "", "a,b,c"]))
+def test_annotation_rows_of_anything(tmp_path: Path, body: list[str], header: str) -> None:
+    path = tmp_path / "labels.csv"
+    path.write_text(header + "\n" + "\n".join(body) + "\n")
+    _read_annotations(path)
+
+
+@FUZZ
+@given(data=st.binary(max_size=600))
+def test_annotation_any_bytes(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "labels.csv"
+    path.write_bytes(data)
+    _read_annotations(path)
