@@ -848,6 +848,8 @@ def view(recording: Path, save: Path | None) -> None:
     suffix = recording.suffix.lower()
     if suffix not in (".rrd", ".mcap"):
         raise InputError(f"{recording}: not a recording (.rrd or .mcap)")
+    if suffix == ".mcap":
+        _check_mcap(recording)
     rerun = _rerun_executable()
     if save is None:
         sys.exit(subprocess.call([rerun, str(recording)]))
@@ -858,6 +860,21 @@ def view(recording: Path, save: Path | None) -> None:
     else:
         _mcap_to_rrd(recording, save)
     click.echo(f"wrote {save}")
+
+
+def _check_mcap(path: Path) -> None:
+    """An InputError naming ``path`` and the fix unless it is an indexed MCAP file."""
+    from mcap.reader import make_reader
+
+    from analysis.load import RECOVER_HINT
+
+    try:
+        with path.open("rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception as exc:  # mcap raises several types for damaged files
+        raise InputError(f"{path}: cannot be read: {RECOVER_HINT} ({exc})") from exc
+    if summary is None:
+        raise InputError(f"{path}: no summary or index: {RECOVER_HINT}")
 
 
 def _rerun_executable() -> str:

@@ -231,6 +231,19 @@ def test_view_save_converts_an_mcap_to_a_verified_rrd(tiny_run: Any, tmp_path: P
     assert subprocess.run([str(rerun), "rrd", "verify", str(target)], check=False).returncode == 0
 
 
+def test_view_names_a_cut_mcap_and_the_fix(tiny_run: Any, tmp_path: Path) -> None:
+    out, manifest = tiny_run
+    data = (out / "tiny" / manifest["trials"][0]["mcap"]).read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    result = CliRunner().invoke(cli, ["view", str(cut), "--save", str(tmp_path / "x.rrd")])
+    assert result.exit_code == 2
+    assert str(cut) in result.output
+    assert "magrun recover" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "x.rrd").exists()
+
+
 def test_view_rejects_other_files(tmp_path: Path) -> None:
     other = tmp_path / "x.csv"
     other.write_text("a\n")
