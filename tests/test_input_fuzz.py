@@ -16,7 +16,7 @@ from magrun.field.comsol import ComsolFormatError, read_comsol_map
 from magrun.tracking.dataset import load_annotations
 
 FUZZ = settings(
-    max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+    max_examples=600, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
 
 HEADER = "% Model: x\n% Length unit: mm\n% x  y  mf.Bx (T)  mf.By (T)\n"
@@ -28,7 +28,32 @@ numbers = st.one_of(
 rows = st.lists(st.lists(numbers, min_size=0, max_size=6).map(" ".join), max_size=12)
 
 
-def _read_comsol(path: Path) -> None:
+comsol_files = st.one_of(
+    st.builds(
+        lambda header, body: (header + "\n".join(body) + "\n").encode(),
+        st.sampled_from([HEADER, "", "% x y Bx By\n", "% x y z Bx By Bz\n"]),
+        rows,
+    ),
+    st.binary(max_size=600),
+)
+
+COLUMNS = "image,tail_u,tail_v,centre_u,centre_v,head_u,head_v,comment"
+cells = st.one_of(numbers, st.text(max_size=12), st.just('"quoted, cell"'))
+annotation_files = st.one_of(
+    st.builds(
+        lambda header, body: (header + "\n" + "\n".join(body) + "\n").encode(),
+        st.sampled_from([COLUMNS, "image,tail_u", "", "a,b,c"]),
+        st.lists(st.lists(cells, min_size=0, max_size=9).map(",".join), max_size=10),
+    ),
+    st.binary(max_size=600),
+)
+
+
+@FUZZ
+@given(data=comsol_files)
+def test_comsol_exports_of_anything(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "map.txt"
+    path.write_bytes(data)
     message = None
     try:
         read_comsol_map(path)
@@ -38,27 +63,10 @@ def _read_comsol(path: Path) -> None:
 
 
 @FUZZ
-@given(body=rows, header=st.sampled_from([HEADER, "", "% x y Bx By\n", "% x y z Bx By Bz\n"]))
-def test_comsol_rows_of_anything(tmp_path: Path, body: list[str], header: str) -> None:
-    path = tmp_path / "map.txt"
-    path.write_text(header + "\n".join(body) + "\n")
-    _read_comsol(path)
-
-
-@FUZZ
-@given(data=st.binary(max_size=600))
-def test_comsol_any_bytes(tmp_path: Path, data: bytes) -> None:
-    path = tmp_path / "map.txt"
+@given(data=annotation_files)
+def test_annotation_files_of_anything(tmp_path: Path, data: bytes) -> None:
+    path = tmp_path / "labels.csv"
     path.write_bytes(data)
-    _read_comsol(path)
-
-
-COLUMNS = "image,tail_u,tail_v,centre_u,centre_v,head_u,head_v,comment"
-cells = st.one_of(numbers, st.text(max_size=12), st.just('"quoted, cell"'))
-csv_rows = st.lists(st.lists(cells, min_size=0, max_size=9).map(",".join), max_size=10)
-
-
-def _read_annotations(path: Path) -> None:
     message = None
     try:
         labels = load_annotations(path)
@@ -68,19 +76,3 @@ def _read_annotations(path: Path) -> None:
         assert all(np.all(np.isfinite(points)) for _, points in labels)
     else:
         assert message.startswith(str(path))
-
-
-@FUZZ
-@given(body=csv_rows, header=st.sampled_from([COLUMNS, "image,tail_u", "", "a,b,c"]))
-def test_annotation_rows_of_anything(tmp_path: Path, body: list[str], header: str) -> None:
-    path = tmp_path / "labels.csv"
-    path.write_text(header + "\n" + "\n".join(body) + "\n")
-    _read_annotations(path)
-
-
-@FUZZ
-@given(data=st.binary(max_size=600))
-def test_annotation_any_bytes(tmp_path: Path, data: bytes) -> None:
-    path = tmp_path / "labels.csv"
-    path.write_bytes(data)
-    _read_annotations(path)
