@@ -3,11 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -120,47 +115,14 @@ def test_cli_recover_json(recording: Path, tmp_path: Path) -> None:
     assert doc["per_topic"]["/robot/pose/desired"] > 0
 
 
-CHILD = """
-import sys, time
-import numpy as np
-sys.path.insert(0, {tests!r})
-from test_recover import _tick
-from magrun.recording import RecordingSetup, TrialRecorder
-setup = RecordingSetup(trial={{"method": "proposed"}}, channel_names=tuple("abcdefgh"))
-rec = TrialRecorder({base!r}, setup, flush_s=1.0).start()
-k = 0
-while True:
-    rec.log(_tick(k))
-    print(k, flush=True)
-    k += 1
-    time.sleep({period})
-"""
+def test_sigkill_loses_at_most_the_last_second() -> None:
+    """Recording processes killed with SIGKILL mid-trial (magrun bench sigkill's child, at
+    real-time pace): ``recover`` gets back everything up to at most 1 s of trial time (the
+    flush period) plus the tick in hand and one of slack before the kill."""
+    from magrun.bench import bench_sigkill
 
-
-def test_sigkill_loses_at_most_the_last_second(tmp_path: Path) -> None:
-    """A recorder process killed with SIGKILL mid-trial: ``recover`` gets back everything up
-    to at most 1 s of trial time (plus one tick and the writer's queue) before the kill."""
-    period = 0.004  # ~10× faster than real time: 1 s of trial time every 0.16 s
-    code = CHILD.format(tests=str(Path(__file__).parent), base=str(tmp_path / "t"), period=period)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, env=env)
-    assert child.stdout is not None
-    last = -1
-    t0 = time.monotonic()
-    while last < 120 and time.monotonic() - t0 < 120:  # ~4.7 s of trial time logged
-        line = child.stdout.readline()
-        if not line:
-            break
-        last = int(line)
-    child.send_signal(signal.SIGKILL)
-    rest = child.stdout.read().split()  # ticks logged after the last line read
-    child.stdout.close()
-    child.wait()
-    last = max([last, *map(int, rest)])
-    assert last >= 120, "the recorder process did not get going"
-    report = recover(tmp_path / "t.mcap", tmp_path / "r.mcap")
-    assert not report.complete
-    assert report.last_time_ns is not None
-    lost_s = last * DT - report.last_time_ns / 1e9
-    assert 0 <= lost_s <= 1.0 + 3 * DT  # the flush period, the tick in hand, one of slack
-    assert report.per_topic["/robot/pose/desired"] >= last - round((1.0 + 3 * DT) / DT)
+    result = bench_sigkill(kills=2, dt=DT, window=(1.5, 3.0), seed=1)
+    for run in result["runs"]:
+        assert run["ticks_logged"] >= 1.5 / DT - 2
+        assert 0 <= run["trial_s_lost"] <= 1.0 + 3 * DT
+        assert run["ticks_recovered"] >= run["ticks_logged"] - round((1.0 + 3 * DT) / DT)

@@ -17,12 +17,14 @@ What the controllers do not know, and the plant does:
 - walls stop the robot's body, a capsule (inelastic, frictionless contact that pushes and
   turns it out as drag lets it: :meth:`magrun.scene.Walls.resolve_capsule`).
 
-With a ``camera``, every observation carries a rendered top-view frame of the true pose
+With a ``camera``, an observation asked for a frame carries a rendered top-view frame of the
+true pose
 (:mod:`magrun.tracking.render`: the robot's look, the walls, blur, lighting, sensor noise),
 seeded with the trial, for the tracker to work on as it would on the real rig.
 
 The plant integrates :func:`magrun.robot.discrete_step` on a fine step (1 ms by default),
-re-evaluating the field and the ramping currents every step.
+re-evaluating the field and the ramping currents every step (the field through
+:class:`magrun.field.grid.GridCells`, each grid cell's corners gathered once).
 """
 
 from __future__ import annotations
