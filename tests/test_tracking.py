@@ -28,6 +28,7 @@ from magrun.tracking.dataset import (
     synthetic_sample,
 )
 from magrun.tracking.fluoroscopy import FluoroscopyMimic
+from magrun.tracking.inference import heatmap_net, to_array
 from magrun.tracking.keypoints import axial_offsets, fiducials, pose_from_keypoints
 from magrun.tracking.render import PINK, YELLOW, Renderer, _Canvas
 from magrun.tracking.tracker import (
@@ -326,6 +327,36 @@ def test_batch_norm_fusion_preserves_the_output(shipped: KeypointUNet) -> None:
     x = to_input(np.random.default_rng(0).integers(0, 256, (2, 96, 96, 3), dtype=np.uint8))
     with torch.inference_mode():
         assert_allclose(fuse_batch_norm(shipped)(x).numpy(), shipped(x).numpy(), atol=1e-4)
+
+
+@pytest.mark.parametrize("side", [(64, 64), (96, 128), (256, 256)])
+def test_onnx_runtime_computes_the_torch_heatmaps(shipped: KeypointUNet, side) -> None:
+    """The exported graph at any input size (the window, a search) and batch: the same maps,
+    1e-4 absolute (peaks are ~1)."""
+    images = np.random.default_rng(1).integers(0, 256, (2, *side, 3), dtype=np.uint8)
+    fused = fuse_batch_norm(shipped)
+    x = to_array(images)
+    assert_allclose(x, to_input(images).numpy())
+    ref = heatmap_net(fused, "torch")(x)
+    assert ref.shape == (2, 3, *side)
+    assert_allclose(heatmap_net(fused, "onnx")(x), ref, atol=1e-4)
+    with pytest.raises(ValueError, match="unknown backend"):
+        heatmap_net(fused, "tensorflow")  # type: ignore[arg-type]
+
+
+def test_tracker_backends_agree_on_rendered_frames(shipped, robots) -> None:
+    """Same keypoints (1e-3 px) and poses from ONNX Runtime and torch, search and window."""
+    robot, cam = robots["magnet"], Camera()
+    trackers = [Tracker(shipped, cam, robot, backend=b) for b in ("onnx", "torch")]
+    for seed, pose in enumerate([[0.01, -0.02, 0.4], [-0.03, 0.025, -2.5]]):
+        frame = Renderer(cam, robot, Walls.box(0.05), seed=seed).render(pose)
+        for prior in (None, np.array(pose)):
+            a, b = (t.track(frame, prior) for t in trackers)
+            assert a.searched == b.searched
+            assert_allclose(a.keypoints, b.keypoints, atol=1e-3)
+            assert a.pose is not None
+            assert b.pose is not None
+            assert_allclose(a.pose, b.pose, atol=1e-6)
 
 
 def test_weights_round_trip(tmp_path) -> None:

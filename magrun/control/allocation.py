@@ -5,7 +5,8 @@ At the robot's pose the wrench is linear in the currents, ``w = A(p, θ) I`` wit
 
     F_c = G_cᵀ m            τ_c = m × B_c            m = |m| (cos θ, sin θ)
 
-The allocation is a bounded, regularised least-squares problem (scipy ``lsq_linear``, BVLS)::
+The allocation is a bounded, regularised least-squares problem
+(:class:`magrun.control.qp.BoxLeastSquares`: DAQP, with scipy's BVLS as reference)::
 
     min_I  ‖(A_F I − F_d) / F_ref‖² + ‖(A_τ I − τ_d) / τ_ref‖² + w_b ‖(m̂ᵀ B(I) − B_align) / B_ref‖²
            + λ ‖I / I_max‖²
@@ -20,11 +21,12 @@ small where the wrench leaves them free.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import lsq_linear
 
+from magrun.control.qp import BoxLeastSquares
 from magrun.field.model import PlanarFieldModel
 
 FloatArray = NDArray[np.float64]
@@ -82,6 +84,11 @@ def allocate(
     )
     rhs = np.concatenate([wrench / row_scale, [align_w * config.align_field], np.zeros(n)])
     lo = np.minimum(lower, upper - 1e-12)
-    res = lsq_linear(M, rhs, bounds=(lo, upper), method="bvls")
-    currents = np.clip(res.x, lo, upper)
+    currents = _box_lsq(n)(M, rhs, lo, upper)
     return currents, A @ currents
+
+
+@lru_cache(maxsize=4)
+def _box_lsq(n: int) -> BoxLeastSquares:
+    """One solver per channel count and process (a CasADi function is built once)."""
+    return BoxLeastSquares(n)

@@ -35,13 +35,13 @@ from torch import nn
 
 from magrun.robot import RobotParams
 from magrun.tracking.camera import DEFAULT_CAMERA, Camera
+from magrun.tracking.inference import Backend, heatmap_net, to_array
 from magrun.tracking.keypoints import pose_from_keypoints
 from magrun.tracking.unet import (
     KeypointUNet,
     load_weights,
     peak_candidates,
     refine_peak,
-    to_input,
 )
 
 FloatArray = NDArray[np.float64]
@@ -158,6 +158,9 @@ class Tracker:
     model_px_per_mm : float
         The scale the model was trained at. Frames at another scale (a real camera) are
         resized to it before tracking; results are reported in the frame's own pixels.
+    backend : {"onnx", "torch"}
+        What runs the UNet (:mod:`magrun.tracking.inference`): ONNX Runtime (default,
+        ~1.8× faster per window here) or torch (the reference). Same heat maps to ~1e-5.
     """
 
     def __init__(
@@ -168,8 +171,10 @@ class Tracker:
         min_confidence: float = 0.3,
         window_px: int | None = None,
         model_px_per_mm: float = DEFAULT_CAMERA.px_per_mm,
+        backend: Backend = "onnx",
     ) -> None:
-        self.net = fuse_batch_norm(model)
+        self.backend = backend
+        self._net = heatmap_net(fuse_batch_norm(model), backend)
         self.stride = model.stride
         self.camera = camera
         cfg = camera.config
@@ -197,11 +202,16 @@ class Tracker:
 
     @classmethod
     def default(
-        cls, camera: Camera, robot: RobotParams, weights: str | Path | None = None
+        cls,
+        camera: Camera,
+        robot: RobotParams,
+        weights: str | Path | None = None,
+        backend: Backend = "onnx",
     ) -> Tracker:
         """A tracker with the shipped weights (or those in ``weights``)."""
         model, meta = load_weights(weights if weights is not None else default_weights_path())
-        return cls(model, camera, robot, model_px_per_mm=meta.get("px_per_mm", 2.5))
+        px_per_mm = meta.get("px_per_mm", 2.5)
+        return cls(model, camera, robot, model_px_per_mm=px_per_mm, backend=backend)
 
     def reset(self) -> None:
         """Forget the previous pose (a new trial)."""
@@ -233,9 +243,7 @@ class Tracker:
         return result
 
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
-        with torch.inference_mode():
-            out: NDArray[np.float32] = self.net(to_input(image))[0].numpy()
-        return out
+        return self._net(to_array(image))[0]
 
     def _in_window(self, frame: U8, pose: FloatArray, searched: bool) -> TrackResult:
         h, w = frame.shape[:2]
