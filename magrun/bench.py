@@ -152,6 +152,10 @@ def _camera_frames(width: int, height: int, n: int, seed: int = 0) -> list[np.nd
     return frames
 
 
+#: the recorder's writers `bench recorder` compares
+WRITERS = ("thread", "process")
+
+
 def bench_recorder(
     seconds: float = 5.0,
     fps: float = 200.0,
@@ -160,19 +164,23 @@ def bench_recorder(
     out_dir: str | None = None,
     compression: str = "lz4",
     ticks: int = 1000,
+    writers: tuple[str, ...] = WRITERS,
 ) -> dict[str, Any]:
     """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
-    of logging to the control tick.
+    of logging to the control tick, for each writer (``thread``: the writer on a thread of
+    the loop's process, :class:`~magrun.recording.TrialRecorder`; ``process``: in a child
+    process, :class:`~magrun.recorder_process.ProcessRecorder`).
 
-    Phase 1 (throughput): a producer paced at ``fps`` hands the :class:`TrialRecorder` a tick
+    Phase 1 (throughput), per writer: a producer paced at ``fps`` hands the recorder a tick
     per frame (a raw ``width`` × ``height`` mono8 frame, six poses, eight currents, a status)
     for ``seconds``; the figures are frames written and dropped, the writer's sustained rate
     (frames over the time until the file is finished) and MB/s. The .rrd gets every 20th frame.
 
     Phase 2 (tick cost): the same control tick — one proposed-NMPC solve on a fixed problem —
     runs ``ticks`` times at ``fps`` without logging and ``ticks`` times logging each tick
-    (frames as in phase 1) to a recorder whose writer thread is busy, alternating in blocks of
-    a tenth; the figures are the p99 tick times of each and their difference.
+    (frames as in phase 1) to each writer, the conditions alternating in blocks of a tenth so
+    that a change in the machine's load meets all of them; the figures are the p50 and p99
+    tick times of each and the p99 difference to the bare ticks.
     """
     import tempfile
     from pathlib import Path
@@ -180,11 +188,13 @@ def bench_recorder(
     from magrun.control.base import ControllerStatus
     from magrun.control.methods import make_controller
     from magrun.loop import Tick
+    from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder
 
     frames = _camera_frames(width, height, 8)
     names = tuple(f"coil{i}" for i in range(8))
     status = ControllerStatus(0.0015, 1, True, "", "0")
+    recorders = {"thread": TrialRecorder, "process": ProcessRecorder}
 
     def tick(k: int) -> Tick:
         pose = np.array([1e-3 * math.sin(k / 50), 1e-3 * math.cos(k / 50), k / 1000])
@@ -194,14 +204,17 @@ def bench_recorder(
             compute_time=0.0015, frame=frames[k % len(frames)],
         )  # fmt: skip
 
-    def setup() -> RecordingSetup:
-        return RecordingSetup(
+    def recorder(writer: str, base: Path) -> Any:
+        setup = RecordingSetup(
             trial={"protocol": "bench", "method": "none"},
             channel_names=names,
             image_format="raw",
             rerun_image_every=20,
             compression=compression,
         )
+        if writer == "thread":
+            return TrialRecorder(base, setup, queue_size=512).start()
+        return recorders[writer](base, setup, slots=64).start()
 
     out: dict[str, Any] = {
         "benchmark": "recorder",
@@ -210,32 +223,34 @@ def bench_recorder(
         "target_fps": fps,
         "seconds": seconds,
         "compression": compression,
+        "throughput": {},
     }
     with tempfile.TemporaryDirectory(dir=out_dir, prefix="magrun-bench-") as tmp:
         # phase 1: sustained throughput
         n = int(seconds * fps)
-        rec = TrialRecorder(Path(tmp) / "throughput", setup(), queue_size=512).start()
-        start = time.perf_counter()
-        for k in range(n):
-            delay = start + k / fps - time.perf_counter()
-            if delay > 0:
-                time.sleep(delay)
-            rec.log(tick(k))
-        produced = time.perf_counter() - start
-        stats = rec.close()
-        finished = time.perf_counter() - start
-        size = rec.mcap_path.stat().st_size
-        out["throughput"] = {
-            "frames_offered": n,
-            "frames_written": stats.images,
-            "ticks_dropped": stats.dropped_ticks,
-            "producer_s": produced,
-            "finished_s": finished,
-            "sustained_fps": stats.images / finished,
-            "mcap_mb": size / 1e6,
-            "mcap_mb_per_s": size / 1e6 / finished,
-            "error": stats.error,
-        }
+        for writer in writers:
+            rec = recorder(writer, Path(tmp) / f"throughput-{writer}")
+            start = time.perf_counter()
+            for k in range(n):
+                delay = start + k / fps - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)
+                rec.log(tick(k))
+            produced = time.perf_counter() - start
+            stats = rec.close()
+            finished = time.perf_counter() - start
+            size = rec.mcap_path.stat().st_size
+            out["throughput"][writer] = {
+                "frames_offered": n,
+                "frames_written": stats.images,
+                "ticks_dropped": stats.dropped_ticks,
+                "producer_s": produced,
+                "finished_s": finished,
+                "sustained_fps": stats.images / finished,
+                "mcap_mb": size / 1e6,
+                "mcap_mb_per_s": size / 1e6 / finished,
+                "error": stats.error,
+            }
         # phase 2: what logging adds to a control tick
         controller = make_controller("proposed")
         ref = np.zeros((21, 3))
@@ -262,28 +277,32 @@ def bench_recorder(
             return times
 
         timed(None, min(50, ticks), 0)  # warm up
-        # the two conditions alternate in blocks, so a change in the machine's load meets both
         block = max(ticks // 10, 1)
-        bare_times: list[float] = []
-        logged_times: list[float] = []
-        rec = TrialRecorder(Path(tmp) / "tick_cost", setup(), queue_size=512).start()
-        while len(bare_times) < ticks:
-            n = min(block, ticks - len(bare_times))
-            bare_times += timed(None, n, 0)
-            logged_times += timed(rec.log, n, len(logged_times))
-            time.sleep(0.05)  # let the writer drain before the next bare block
-        stats = rec.close()
-        bare, logged = np.array(bare_times), np.array(logged_times)
-        out["tick_cost"] = {
+        times: dict[str, list[float]] = {"bare": [], **{w: [] for w in writers}}
+        live = {w: recorder(w, Path(tmp) / f"tick_cost-{w}") for w in writers}
+        while len(times["bare"]) < ticks:
+            n = min(block, ticks - len(times["bare"]))
+            times["bare"] += timed(None, n, 0)
+            for w, rec in live.items():
+                times[w] += timed(rec.log, n, len(times[w]))
+                time.sleep(0.05)  # let the writer drain before the next block
+        bare = np.array(times["bare"])
+        cost: dict[str, Any] = {
             "ticks": len(bare),
             "rate_hz": fps,
             "p50_bare_ms": _ms(bare, 50),
             "p99_bare_ms": _ms(bare, 99),
-            "p50_logging_ms": _ms(logged, 50),
-            "p99_logging_ms": _ms(logged, 99),
-            "p99_added_ms": _ms(logged, 99) - _ms(bare, 99),
-            "ticks_dropped": stats.dropped_ticks,
         }
+        for w, rec in live.items():
+            stats = rec.close()
+            logged = np.array(times[w])
+            cost[w] = {
+                "p50_logging_ms": _ms(logged, 50),
+                "p99_logging_ms": _ms(logged, 99),
+                "p99_added_ms": _ms(logged, 99) - _ms(bare, 99),
+                "ticks_dropped": stats.dropped_ticks,
+            }
+        out["tick_cost"] = cost
     return out
 
 

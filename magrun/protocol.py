@@ -237,6 +237,15 @@ class RecordingSettings(_Strict):
     compression: Literal["zstd", "lz4", "none"] = Field(
         "zstd", description="MCAP chunk compression (lz4: cheapest on CPU for raw frames)."
     )
+    writer: Literal["thread", "process"] = Field(
+        "process",
+        description=(
+            "Where the recording is written: 'process' (a child process fed through shared "
+            "memory: logging costs the control loop a copy, and the files are finished even "
+            "if the loop's process is killed) or 'thread' (a thread of the loop's process, "
+            "whose Python work competes with the loop for the GIL)."
+        ),
+    )
 
 
 class QuickSettings(_Strict):

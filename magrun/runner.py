@@ -154,6 +154,7 @@ def execute_trial(
     """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
     from magrun.control.methods import make_controller
     from magrun.loop import run_trial
+    from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder, software_versions
     from magrun.robot import load_robot
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
@@ -208,7 +209,11 @@ def execute_trial(
             compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
         )
-        recorder = TrialRecorder(base, setup).start()
+        recorder = (
+            ProcessRecorder(base, setup, wait_when_full=rig == "sim")
+            if protocol.recording.writer == "process"
+            else TrialRecorder(base, setup)
+        ).start()
         tick_progress = (
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )

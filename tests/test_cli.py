@@ -316,14 +316,18 @@ def test_bench_recorder_json(runner: CliRunner) -> None:
     result = runner.invoke(cli, [*args, "--height", "48", "--ticks", "20", "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
-    t, c = doc["throughput"], doc["tick_cost"]
-    assert t["frames_offered"] == 10
-    assert t["frames_written"] == 10
-    assert t["ticks_dropped"] == 0
-    assert t["error"] == ""
-    assert t["sustained_fps"] == pytest.approx(10 / t["finished_s"])
+    c = doc["tick_cost"]
     assert c["ticks"] == 20
-    assert c["p99_added_ms"] == pytest.approx(c["p99_logging_ms"] - c["p99_bare_ms"])
+    assert set(doc["throughput"]) == {"thread", "process"}
+    for writer, t in doc["throughput"].items():
+        assert t["frames_offered"] == 10
+        assert t["frames_written"] == 10
+        assert t["ticks_dropped"] == 0
+        assert t["error"] == ""
+        assert t["sustained_fps"] == pytest.approx(10 / t["finished_s"])
+        w = c[writer]
+        assert w["ticks_dropped"] == 0
+        assert w["p99_added_ms"] == pytest.approx(w["p99_logging_ms"] - c["p99_bare_ms"])
 
 
 def test_bench_sigkill_json(runner: CliRunner) -> None:

@@ -1,0 +1,140 @@
+"""The recorder whose writer is a child process: same files, drops counted, survives its parent."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+from test_recording import _rrd_rows
+
+from magrun.control.base import ControllerStatus
+from magrun.loop import Tick
+from magrun.recorder_process import ProcessRecorder
+from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.tracking.camera import Camera
+
+STATUS = ControllerStatus(0.001, 1, True, "", "0")
+
+
+def _ticks(n: int, frames: list[np.ndarray | None]) -> list[Tick]:
+    out = []
+    for k in range(n):
+        pose = np.array([1e-3 * k, -1e-3 * k, 0.01 * k])
+        out.append(
+            Tick(
+                k=k, t=k * 0.04, actual=pose, tracked=None if k % 5 == 4 else pose,
+                measured=pose if k % 3 == 0 else None, estimated=pose, predicted=pose,
+                desired=pose, currents=np.full(8, float(k)), status=STATUS,
+                compute_time=0.002, frame=frames[k % len(frames)],
+            )
+        )  # fmt: skip
+    return out
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with path.open("rb") as fh:
+        reader = make_reader(fh)
+        return [(ch.topic, m.log_time, m.data) for _, ch, m in reader.iter_messages()]
+
+
+def _metadata(path: Path) -> dict[str, dict[str, str]]:
+    with path.open("rb") as fh:
+        return {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+
+
+def _setup(**kw) -> RecordingSetup:
+    return RecordingSetup(trial={"method": "x"}, channel_names=tuple("abcdefgh"), **kw)
+
+
+def test_process_writer_writes_what_the_thread_writer_writes(tmp_path: Path) -> None:
+    """Every MCAP message identical (topic, time, bytes) for JPEG and raw frames, and the
+    same .rrd rows, ticks without a frame among them."""
+    rng = np.random.default_rng(3)
+    rgb = [rng.integers(0, 256, (256, 256, 3), dtype=np.uint8) for _ in range(3)]
+    for fmt, frames in (("jpeg", [*rgb, None]), ("raw", [rgb[0][..., 0], None])):
+        setup = _setup(camera=Camera(), image_format=fmt)
+        ticks = _ticks(70, frames)
+        recs = []
+        for name, cls in (("thread", TrialRecorder), ("process", ProcessRecorder)):
+            with cls(tmp_path / f"{fmt}-{name}", setup) as rec:
+                for tick in ticks:
+                    rec.log(tick)
+            assert rec.stats.error == ""
+            assert rec.stats.dropped_ticks == 0
+            assert rec.stats.ticks_written == rec.stats.ticks_logged == len(ticks)
+            recs.append(rec)
+        thread, proc = recs
+        assert proc.stats.images == thread.stats.images > 0
+        assert _messages(proc.mcap_path) == _messages(thread.mcap_path)
+        assert _metadata(proc.mcap_path)["recorder"] == _metadata(thread.mcap_path)["recorder"]
+        assert _rrd_rows(proc.rrd_path) == _rrd_rows(thread.rrd_path)
+
+
+def test_full_ring_and_oversized_frames_are_dropped_and_counted(tmp_path: Path) -> None:
+    frame = np.zeros((32, 32), np.uint8)
+    rec = ProcessRecorder(tmp_path / "t", _setup(image_format="raw"), slots=4).start()
+    ticks = _ticks(10, [frame])
+    os.kill(rec._proc.pid, signal.SIGSTOP)  # the writer takes nothing while stopped
+    try:
+        for tick in ticks[:7]:
+            rec.log(tick)
+    finally:
+        os.kill(rec._proc.pid, signal.SIGCONT)
+    rec.log(_ticks(1, [np.zeros((33, 32), np.uint8)])[0])  # larger than the ring's frames
+    stats = rec.close()
+    assert (stats.ticks_logged, stats.dropped_ticks, stats.ticks_written) == (8, 4, 4)
+    assert _metadata(rec.mcap_path)["recorder"]["ticks_written"] == "4"
+
+
+def test_writer_ignores_sigint_and_sigterm(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group: the loop's process, not the writer, decides."""
+    rec = ProcessRecorder(tmp_path / "t", _setup()).start()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        os.kill(rec._proc.pid, sig)
+    time.sleep(0.2)
+    assert rec._proc.is_alive()
+    for tick in _ticks(5, [None]):
+        rec.log(tick)
+    assert rec.close().ticks_written == 5
+
+
+CHILD = """
+import os, sys, numpy as np
+sys.path.insert(0, "tests")
+from test_recorder_process import _setup, _ticks
+from magrun.recorder_process import ProcessRecorder
+rec = ProcessRecorder(sys.argv[1], _setup(image_format="raw")).start()
+for tick in _ticks(40, [np.full((64, 64), 7, np.uint8)]):
+    rec.log(tick)
+print(rec._proc.pid, flush=True)
+os.kill(os.getpid(), 9)
+"""
+
+
+def test_writer_finishes_the_files_when_the_loop_process_is_killed(tmp_path: Path) -> None:
+    """SIGKILL of the loop's process: the writer finishes both files, indexed, status
+    "interrupted", every tick handed over before the kill written."""
+    base = tmp_path / "killed"
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, str(base)],
+        capture_output=True, text=True, timeout=120, cwd=Path(__file__).parents[1],
+    )  # fmt: skip
+    assert out.returncode == -signal.SIGKILL, out.stderr
+    writer = int(out.stdout.split()[0])
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:  # the writer notices within 0.25 s, then finishes
+        try:
+            os.kill(writer, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.05)
+    meta = _metadata(base.with_suffix(".mcap"))["recorder"]
+    assert meta["status"] == "interrupted"
+    assert meta["ticks_written"] == "40"
+    assert base.with_suffix(".rrd").stat().st_size > 0
