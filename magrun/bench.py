@@ -314,17 +314,20 @@ def bench_campaign(
     progress: Callable[[str], None] | None = None,
     feedback: str | None = None,
 ) -> dict[str, Any]:
-    """Run the protocols one after the other with ``jobs`` processes, recordings written.
+    """Run the protocols, recordings written, their trials sharing one pool of ``jobs``
+    processes (protocols with the longest trials first, so that no worker idles at the end).
 
-    Figures per protocol and in total: trials, wall time, trials per minute, failed trials,
-    dropped recorder ticks, control ticks that overran their period, and the recordings' size.
-    ``feedback`` "camera" or "truth" overrides every protocol's ``feedback.camera`` (None:
-    as the files say).
+    Figures per protocol: trials, ``wall_s`` (from the campaign's start to the protocol's
+    last trial done: protocols overlap), failed trials, dropped recorder ticks, control ticks
+    that overran their period, ticks, and the recordings' size; in total the same, with the
+    campaign's wall time and trials per minute. ``feedback`` "camera" or "truth" overrides
+    every protocol's ``feedback.camera`` (None: as the files say).
     """
+    import concurrent.futures as cf
     from pathlib import Path
 
     from magrun.protocol import load_protocol
-    from magrun.runner import run_protocol
+    from magrun.runner import build_scene, pool_executor, run_protocol, shared_pool
 
     if feedback not in (None, "camera", "truth"):
         raise ValueError(f"feedback must be camera or truth, got {feedback!r}")
@@ -336,7 +339,7 @@ def bench_campaign(
         "feedback": feedback or "as in the protocols",
         "protocols": {},
     }
-    total_start = time.perf_counter()
+    protocols = []
     for path in protocol_files:
         protocol = load_protocol(path)
         if feedback is not None:
@@ -344,22 +347,40 @@ def bench_campaign(
             protocol = protocol.model_copy(
                 update={"feedback": protocol.feedback.model_copy(update={"camera": camera})}
             )
+        protocols.append(protocol)
+
+    def seconds(protocol: Any) -> float:
+        return protocol.trial_duration(quick) or build_scene(protocol).reference.duration + 1.0
+
+    protocols.sort(key=lambda p: -seconds(p))
+    total_start = time.perf_counter()
+
+    def run_one(protocol: Any, executor: Any) -> tuple[dict[str, Any], float]:
         if progress is not None:
             progress(protocol.name)
-        t0 = time.perf_counter()
-        manifest = run_protocol(protocol, out, quick=quick, jobs=jobs, overwrite=True)
-        wall = time.perf_counter() - t0
+        manifest = run_protocol(protocol, out, quick=quick, executor=executor, overwrite=True)
+        return manifest, time.perf_counter() - total_start
+
+    with shared_pool(jobs) as pool, cf.ThreadPoolExecutor(max(len(protocols), 1)) as threads:
+        executor = pool_executor(pool)
+        futures = []
+        for protocol in protocols:  # the pool queues trials in submission order
+            futures.append(threads.submit(run_one, protocol, executor))
+            time.sleep(0.2)
+        done = [f.result() for f in futures]
+    for protocol, (manifest, finished) in zip(protocols, done, strict=True):
         trials = manifest["trials"]
         folder = Path(out) / protocol.name
         size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
         result["protocols"][protocol.name] = {
             "trials": len(trials),
-            "wall_s": wall,
-            "trials_per_min": len(trials) / wall * 60,
+            "wall_s": finished,
+            "trials_per_min": len(trials) / finished * 60,
             "failed": sum(t["status"] != "ok" for t in trials),
             "dropped_ticks": sum(int(t.get("dropped_ticks") or 0) for t in trials),
             "overrun_ticks": sum(int(t.get("overruns") or 0) for t in trials),
             "ticks": sum(int(t.get("ticks") or 0) for t in trials),
+            "trial_wall_s": sum(float(t.get("wall_s") or 0.0) for t in trials),
             "recordings_mb": size / 1e6,
         }
     wall = time.perf_counter() - total_start
@@ -525,3 +546,99 @@ def bench_sigkill(
         "max_ticks_lost": int(max(r["ticks_lost"] for r in rows)),
         "runs": rows,
     }
+
+
+def bench_rig(
+    protocol_file: str = "protocols/noise.yaml", stalls: int = 20, watchdog_ms: float = 100.0
+) -> dict[str, Any]:
+    """The hardware path on ``magrun rig-emulator`` (its own process, loopback TCP).
+
+    1. A run: the protocol's ``--quick`` trials through the TCP driver, camera frames over
+       the wire, the UNet tracking in the rig, real-time pacing. Figures per trial: latency
+       (frame to the controller's acknowledgement of the tick's currents: median, p99, max),
+       overrunning ticks, dropped frames, wall time against the trial's duration.
+    2. The watchdog: ``stalls`` times, command 10 A on every coil, then stop commanding and
+       poll ``STATUS`` every millisecond; the reaction is the wall time from the last
+       command's acknowledgement to the first status ``watchdog``; then how long until the
+       driven currents (the emulated amplifiers ramp at the slew limit) read zero.
+    """
+    import subprocess
+    import sys
+    import tempfile
+
+    from magrun.protocol import load_protocol
+    from magrun.rigs.drivers import TcpLineDriver
+    from magrun.runner import HardwareSpec, run_protocol
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magrun.cli", "rig-emulator", "--port", "0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    url = proc.stdout.readline().split()[-1]
+    host, port = url.removeprefix("tcp://").rsplit(":", 1)
+    out: dict[str, Any] = {"benchmark": "rig", "machine": machine(), "emulator": url}
+    try:
+        protocol = load_protocol(protocol_file)
+        with tempfile.TemporaryDirectory(prefix="magrun-rig-") as tmp:
+            t0 = time.perf_counter()
+            manifest = run_protocol(protocol, tmp, quick=True, rig=HardwareSpec(url))
+            wall = time.perf_counter() - t0
+        out["run"] = {
+            "protocol": protocol.name,
+            "wall_s": wall,
+            "trials": [
+                {
+                    "path": e["path"],
+                    "status": e["status"],
+                    "error": e["error"],
+                    "ticks": e.get("ticks"),
+                    "wall_s": e["wall_s"],
+                    "duration_s": protocol.trial_duration(True),
+                    "rms_position_mm": e.get("rms_position_mm"),
+                    **e.get("hardware", {}),
+                }
+                for e in manifest["trials"]
+            ],
+        }
+        driver = TcpLineDriver(host, int(port))
+        driver.open(watchdog_ms * 1e-3)
+        reactions: list[float] = []
+        to_zero: list[float] = []
+        for _ in range(stalls):
+            driver.conn.request("ARM", "OK")
+            driver.send(np.full(len(driver.channel_names), 10.0))
+            last = time.perf_counter()
+            while True:
+                fields = driver.conn.request("STATUS", "STATUS")
+                now = time.perf_counter()
+                if fields[0] == "watchdog":
+                    reactions.append(now - last)
+                    break
+                time.sleep(0.001)
+            while True:
+                fields = driver.conn.request("STATUS", "STATUS")
+                if not any(float(v) for v in fields[2:]):  # the driven currents
+                    to_zero.append(time.perf_counter() - now)
+                    break
+                time.sleep(0.001)
+            driver.conn.request("ARM", "OK")
+            driver.send(np.zeros(len(driver.channel_names)))
+            time.sleep(0.15)  # the amplifiers settle at zero
+        driver.close()
+        r = np.array(reactions)
+        out["watchdog"] = {
+            "timeout_ms": watchdog_ms,
+            "stalls": stalls,
+            "reaction_median_ms": _ms(r, 50),
+            "reaction_max_ms": float(r.max() * 1e3),
+            "beyond_timeout_max_ms": float(r.max() * 1e3 - watchdog_ms),
+            "ramp_to_zero_median_ms": _ms(np.array(to_zero), 50),
+            "ramp_to_zero_max_ms": float(max(to_zero) * 1e3),
+        }
+    finally:
+        proc.terminate()
+        proc.wait(10)
+        proc.stdout.close()
+    return out

@@ -707,7 +707,7 @@ class _RunProgress:
         bar = self.trials.pop(f"{entry['protocol']}/{entry['path']}", None)
         if bar is not None:
             bar.close()
-        self.failed += entry["status"] != "ok"
+        self.failed += entry["status"] not in ("ok", "stopped")
         self.bar.update(1)
         if self.failed:
             self.bar.set_postfix(failed=self.failed)
@@ -743,7 +743,9 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
             f"  {sum(e.get('wall_s', 0.0) for e in entries):6.0f}"
         )
     for e in manifest["trials"]:
-        if e["status"] != "ok":
+        if e["status"] == "stopped":
+            lines.append(f"STOPPED {e['path']}: {e.get('error', '')}")
+        elif e["status"] != "ok":
             lines.append(f"FAILED {e['path']}: {e.get('error', '')}")
     return lines
 
@@ -758,7 +760,20 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
 @click.option("--seed", type=click.IntRange(min=0), help="Override the protocol's seed.")
 @click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Trials run in parallel, one process each.")  # fmt: skip
-@click.option("--rig", type=click.Choice(["sim", "hardware"]), default="sim", show_default=True)
+@click.option(
+    "--rig", type=click.Choice(["sim", "hardware"]), default="sim", show_default=True,
+    help="sim: the simulated plant; hardware: the coils through --driver, in real time.",
+)  # fmt: skip
+@click.option(
+    "--driver", metavar="URL",
+    help="Hardware rig: the coil driver, tcp://HOST:PORT (the line protocol; "
+    "`magrun rig-emulator` serves one) or a plugin's scheme.",
+)  # fmt: skip
+@click.option(
+    "--camera", "camera_source", default="driver", show_default=True, metavar="SOURCE",
+    help="Hardware rig: 'driver' (frames over the driver's connection) or an OpenCV source "
+    "(device index, video file, GStreamer pipeline).",
+)  # fmt: skip
 @click.option(
     "--executor", type=click.Choice(["local", "ray"]), default="local", show_default=True,
     help="local: this machine's processes (--jobs); ray: Ray tasks (pip install magrun[ray]).",
@@ -776,6 +791,8 @@ def run(
     seed: int | None,
     jobs: int,
     rig: str,
+    driver: str | None,
+    camera_source: str,
     executor: str,
     ray_address: str | None,
     overwrite: bool,
@@ -791,9 +808,19 @@ def run(
     "interrupted" in the manifest) and exits with 130 / 143; --resume runs the rest.
     """
     from magrun import interrupt
-    from magrun.runner import RunError, local_executor, ray_executor, run_protocol
+    from magrun.runner import (
+        HardwareSpec,
+        RigSpec,
+        RunError,
+        local_executor,
+        ray_executor,
+        run_protocol,
+    )
 
     (protocol,) = _load_protocols((protocol_file,))
+    if driver is not None and rig != "hardware":
+        raise InputError("--driver is for --rig hardware")
+    the_rig: RigSpec = HardwareSpec(driver, camera_source) if driver is not None else rig
     n = len(protocol.expand(quick=quick, seed=seed))
     chosen = ray_executor(ray_address, jobs) if executor == "ray" else local_executor(jobs)
     progress = _RunProgress(protocol.name, n)
@@ -804,7 +831,8 @@ def run(
     try:
         with interrupt.handling():
             manifest = run_protocol(
-                protocol, out, quick=quick, seed=seed, jobs=jobs, rig=rig, executor=chosen,
+                protocol, out, quick=quick, seed=seed, jobs=jobs, rig=the_rig,
+                executor=None if executor == "local" else chosen,
                 overwrite=overwrite, protocol_file=str(protocol_file),
                 on_trial=progress.trial_done, progress=progress.tick, resume=resume,
             )  # fmt: skip
@@ -815,7 +843,7 @@ def run(
     wall = time.perf_counter() - t0
     for line in _summary(manifest):
         click.echo(line)
-    failed = sum(e["status"] != "ok" for e in manifest["trials"])
+    failed = sum(e["status"] not in ("ok", "stopped") for e in manifest["trials"])
     dropped = sum(e.get("dropped_ticks", 0) for e in manifest["trials"])
     click.echo(
         f"{len(manifest['trials'])} trials in {wall:.0f} s -> {out / protocol.name}"
@@ -1120,6 +1148,39 @@ def bench_sigkill(kills: int, seed: int, as_json: bool) -> None:
     )
 
 
+@bench.command("rig")
+@click.argument("protocol_file", default="protocols/noise.yaml", type=click.Path(path_type=Path))
+@click.option("--stalls", default=20, show_default=True, help="Watchdog trips to time.")
+@click.option("--watchdog-ms", default=100.0, show_default=True, help="Watchdog timeout, ms.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
+def bench_rig(protocol_file: Path, stalls: int, watchdog_ms: float, as_json: bool) -> None:
+    """The hardware path on `magrun rig-emulator`: latency, pacing, dropped frames of the
+    protocol's --quick trials, and the watchdog's reaction to a stalled loop."""
+    from magrun.bench import bench_rig as run
+
+    if stalls < 1 or watchdog_ms <= 0:
+        raise InputError("--stalls must be at least 1 and --watchdog-ms positive")
+    _load_protocols((protocol_file,))
+    result = run(str(protocol_file), stalls, watchdog_ms)
+    if as_json:
+        click.echo(json.dumps(result))
+        return
+    for t in result["run"]["trials"]:
+        click.echo(
+            f"{t['path']}: {t['status']}, {t['ticks']} ticks in {t['wall_s']:.2f} s"
+            f" ({t['duration_s']:.2f} s of trial), latency median"
+            f" {t.get('latency_median_ms', 0):.1f} ms, p99 {t.get('latency_p99_ms', 0):.1f} ms,"
+            f" {t.get('overrun_ticks', 0)} overruns,"
+            f" {t.get('dropped_frames', 0)} dropped frames"
+        )
+    w = result["watchdog"]
+    click.echo(
+        f"watchdog ({w['timeout_ms']:g} ms, {w['stalls']} stalls): reaction median"
+        f" {w['reaction_median_ms']:.1f} ms, max {w['reaction_max_ms']:.1f} ms; currents at"
+        f" zero {w['ramp_to_zero_median_ms']:.1f} ms later (median)"
+    )
+
+
 @bench.command("campaign")
 @click.argument("protocols", nargs=-1, type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--jobs", default=2, show_default=True, help="Trials run in parallel.")
@@ -1211,6 +1272,46 @@ def _say(prefix: str) -> Any:
         click.echo(f"{prefix} {what} ...", err=True)
 
     return say
+
+
+@cli.command("rig-emulator")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option("--port", type=click.IntRange(0, 65535), default=5555, show_default=True,
+              help="TCP port (0: any free port, printed).")  # fmt: skip
+@click.option("--robot", default="magnet", show_default=True, help="A robot of robots.yaml.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Seeds the plant's parameter draw and the camera noise.")  # fmt: skip
+@click.option("--camera/--no-camera", default=True, show_default=True,
+              help="Serve rendered camera frames (GRAB).")  # fmt: skip
+@click.option("--drop-every", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Fail every n-th GRAB, as a camera that drops frames (0: never).")  # fmt: skip
+def rig_emulator(
+    host: str, port: int, robot: str, seed: int, camera: bool, drop_every: int
+) -> None:
+    """Serve the simulated plant and camera over the rig's line protocol, in real time.
+
+    For testing the hardware path without coils: in another terminal,
+    `magrun run PROTOCOL --rig hardware --driver tcp://HOST:PORT`. The protocol is in
+    magrun/rigs/wire.py (and the README). Ctrl-C stops it.
+    """
+    from magrun.rigs.emulator import RigEmulator
+    from magrun.rigs.sim import SimRig
+    from magrun.robot import load_robots
+    from magrun.tracking.camera import CameraConfig
+
+    if robot not in load_robots():
+        raise InputError(f"unknown robot {robot!r}; robots.yaml has {', '.join(load_robots())}")
+    rig = SimRig.default(robot=robot, seed=seed, camera=CameraConfig() if camera else None)
+    try:
+        emulator = RigEmulator(rig, host, port, drop_every=drop_every)
+    except OSError as exc:
+        raise InputError(f"cannot listen on {host}:{port}: {exc}") from exc
+    h, p = emulator.address
+    click.echo(f"rig emulator: {robot}, {len(rig.channel_names)} channels, tcp://{h}:{p}")
+    try:
+        emulator.serve_forever()
+    except KeyboardInterrupt:
+        click.echo("rig emulator stopped")
 
 
 def main() -> None:

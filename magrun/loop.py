@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from magrun.control.base import Controller, ControllerStatus
 from magrun.rigs.base import Rig
 from magrun.robot import wrap_angle
+from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory
 
 FloatArray = NDArray[np.float64]
@@ -64,7 +65,8 @@ class TrialLog:
     currents: FloatArray  # (n, n_channels), as applied
     status: list[ControllerStatus]
     compute_time: FloatArray  # (n,) s, tracking + feedback + controller per tick
-    interrupted: bool = False  # ended early by a stop request (zero currents commanded)
+    interrupted: bool = False  # ended early by a stop request (currents ramped to zero)
+    stop_reason: str = ""  # why the safety layer stopped the trial ("" : it ran to the end)
 
     @property
     def position_error(self) -> FloatArray:
@@ -113,6 +115,8 @@ class Tick:
     status: ControllerStatus
     compute_time: float  # s: tracking + feedback + controller, wall clock
     frame: NDArray[np.uint8] | None = None
+    latency: float = math.nan  # s, the tick's frame to the rig's ack (hardware rigs)
+    safety_stop: str = ""  # the safety layer's reason, once it has tripped
 
 
 def run_trial(
@@ -129,6 +133,7 @@ def run_trial(
     charge_compute: bool = False,
     clock: Callable[[], float] = time.perf_counter,
     stop: Callable[[], bool] | None = None,
+    safety: SafetyLayer | None = None,
 ) -> TrialLog:
     """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
 
@@ -149,10 +154,22 @@ def run_trial(
     ``on_tick`` receives a :class:`Tick` after each tick's currents are applied (the
     recorder's hook); it runs on the loop's thread, so it must be quick.
 
-    ``stop()`` is asked after every tick: when true, the loop commands zero currents and
-    ends the trial early (``TrialLog.interrupted``; :mod:`magrun.interrupt`).
+    Every tick's currents pass through ``safety`` (:class:`magrun.safety.SafetyLayer`;
+    default: the controller's current and slew limits, a safe stop on non-finite currents,
+    no tracking or workspace checks). When it trips, the currents ramp to zero at the slew
+    limit, those ticks recorded like any other, and the trial ends (``TrialLog.stop_reason``).
+
+    ``stop()`` is asked after every tick: when true, the safety layer trips ("interrupted"),
+    the currents ramp to zero as above, and the trial ends early (``TrialLog.interrupted``;
+    :mod:`magrun.interrupt`).
     """
     dt = controller.dt
+    if safety is None:
+        safety = SafetyLayer(
+            controller.n_channels, controller.max_current, controller.max_change / dt, dt,
+            SafetyConfig(lost_timeout_s=None, workspace_margin_m=None),
+        )  # fmt: skip
+    safety.reset()
     total = reference.duration + 1.0 if duration is None else duration
     n_nominal = math.floor(total / dt + 1e-9) + 1
     start = reference.pose(0.0)
@@ -168,13 +185,13 @@ def run_trial(
     offsets = np.arange(horizon + 1) * dt
     k, t = 0, 0.0
     interrupted = False
-    while t <= total + 1e-9:
+    while t <= total + 1e-9 or (safety.tripped and not safety.at_rest):
         take = tracker is None or frame_due is None or frame_due(t)
         obs = rig.observe(frame=take and tracker is not None)
         t0 = clock()
         camera_pose: FloatArray | None = None
-        if tracker is None:
-            camera_pose = obs.pose
+        if tracker is None:  # the rig's pose (NaN: its own tracking lost the robot)
+            camera_pose = obs.pose if np.all(np.isfinite(obs.pose)) else None
         elif not take:
             pass  # no frame due: nothing to track, nothing delivered
         elif obs.frame is None:
@@ -188,11 +205,14 @@ def run_trial(
         period = max(dt, c) if charge_compute else dt
         if charge_compute:
             rig.advance(c)  # the previous currents drive the plant while the controller works
-        applied = rig.apply(out.currents)
+        framed = tracker is None or take
+        safety.check(obs.t, obs.pose, (camera_pose is not None) if framed else None)
+        applied = rig.apply(safety.limit(out.currents, out.fault, obs.t))
         tick = Tick(
             k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
             measured=z, estimated=out.estimate, predicted=prediction, desired=window[0],
             currents=applied, status=out.status, compute_time=c, frame=obs.frame,
+            latency=rig.last_latency, safety_stop=safety.reason,
         )  # fmt: skip
         for name, value in (
             ("t", np.array([obs.t])),
@@ -217,11 +237,12 @@ def run_trial(
         k += 1
         if progress is not None:
             progress(min(k, n_nominal), n_nominal)
-        if stop is not None and stop():
-            rig.apply(np.zeros(len(rig.channel_names)))  # the first thing: no current
+        if stop is not None and not interrupted and stop():
             interrupted = True
+            safety.trip("interrupted", t)
+        if safety.at_rest:
             break
-    if progress is not None and k < n_nominal and not interrupted:
+    if progress is not None and k < n_nominal and not safety.tripped:
         progress(n_nominal, n_nominal)
     arrays = {name: np.stack(rows[name]) for name in _LOG_ARRAYS}
     return TrialLog(
@@ -230,6 +251,7 @@ def run_trial(
         status=statuses,
         compute_time=np.array(compute),
         interrupted=interrupted,
+        stop_reason=safety.reason,
     )
 
 

@@ -237,13 +237,41 @@ class RecordingSettings(_Strict):
     compression: Literal["zstd", "lz4", "none"] = Field(
         "zstd", description="MCAP chunk compression (lz4: cheapest on CPU for raw frames)."
     )
-    writer: Literal["thread", "process"] = Field(
-        "process",
+    writer: Literal["auto", "thread", "process"] = Field(
+        "auto",
         description=(
             "Where the recording is written: 'process' (a child process fed through shared "
             "memory: logging costs the control loop a copy, and the files are finished even "
-            "if the loop's process is killed) or 'thread' (a thread of the loop's process, "
-            "whose Python work competes with the loop for the GIL)."
+            "if the loop's process is killed), 'thread' (a thread of the loop's process, "
+            "whose Python work competes with the loop for the GIL: cheaper in CPU), or "
+            "'auto': process on the hardware rig, thread in simulation (no clock to keep)."
+        ),
+    )
+
+
+class SafetySettings(_Strict):
+    """When a trial stops safely (magrun.safety): the currents ramp to zero at the slew
+    limit, the trial ends, and the manifest and recording say why (status "stopped")."""
+
+    lost_timeout_s: PositiveFloat | None = Field(
+        1.0,
+        description=(
+            "Stop when the camera tracker has lost the robot for longer than this, s "
+            "(null: never; only with camera feedback)."
+        ),
+    )
+    workspace_margin_mm: Annotated[float, Field(ge=0)] | None = Field(
+        5.0,
+        description=(
+            "Stop when the robot is further than this outside the workspace square, mm "
+            "(null: never)."
+        ),
+    )
+    stall_timeout_ms: PositiveFloat = Field(
+        100.0,
+        description=(
+            "Hardware rig: the driver ramps the currents to zero when no command arrived "
+            "for this long, ms."
         ),
     )
 
@@ -281,6 +309,7 @@ class Protocol(_Strict):
     seed: Annotated[int, Field(ge=0, lt=2**63)] = 0
     feedback: FeedbackSettings = FeedbackSettings()
     recording: RecordingSettings = RecordingSettings()
+    safety: SafetySettings = SafetySettings()
     duration_s: PositiveFloat | None = Field(
         None, description="Trial length, s; default: the trajectory plus 1 s of hold."
     )

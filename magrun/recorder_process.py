@@ -145,14 +145,15 @@ class ProcessRecorder:
             return
         self._put(meta, frame)
 
-    def close(self, status: str = "ok") -> RecorderStats:
-        """Let the writer write what is in the ring and finish both files; its statistics."""
+    def close(self, status: str = "ok", reason: str = "") -> RecorderStats:
+        """Let the writer write what is in the ring and finish both files; its statistics.
+        ``status`` and ``reason`` as :meth:`TrialRecorder.close`'s."""
         if self._proc is None:
             return self.stats
         if self._ring is None:
             self._open_ring(0)
         self._wait_for_slot()  # room for the stop entry
-        stop = pickle.dumps(status)
+        stop = pickle.dumps((status, reason))
         self._put(stop, None, stop_entry=True)
         written: RecorderStats | None = None
         if self._conn.poll(self.start_timeout + 60.0):
@@ -243,7 +244,7 @@ def _writer_main(
         return
     conn.send("ready")
     ring: list[Any] = []  # [SharedMemory, slots, slot bytes] once the loop has sent them
-    status = "interrupted"
+    status, reason = "interrupted", "the loop's process ended without closing the recording"
 
     def control() -> bool:
         """Take the loop's messages; False when its end of the pipe is closed (it died)."""
@@ -267,7 +268,7 @@ def _writer_main(
         n_meta, n_frame = (int(v) for v in np.ndarray((2,), np.int64, shm.buf, off))
         payload = pickle.loads(shm.buf[off + _HEADER : off + _HEADER + n_meta])
         if n_frame < 0:
-            status = payload
+            status, reason = payload
             taken[0] += 1
             break
         tick, shape, dtype = payload
@@ -278,7 +279,7 @@ def _writer_main(
         taken[0] += 1
         rec._queue.put(tick)  # blocking: the ring, not this queue, is where ticks drop
         rec.stats.ticks_logged += 1
-    stats = rec.close(status)
+    stats = rec.close(status, reason)
     del taken
     for mem in (counters, *ring[:1]):
         with contextlib.suppress(BufferError):  # a view still alive: the process exits anyway

@@ -128,6 +128,8 @@ def _magrun_messages() -> tuple[type[Message], type[Message]]:
             ("compute_time", T.TYPE_DOUBLE, one),  # s, tracking + feedback + controller
             ("measurement", T.TYPE_BOOL, one),  # whether a fluoroscopy frame arrived
             ("tracking_lost", T.TYPE_BOOL, one),
+            ("latency", T.TYPE_DOUBLE, one),  # s, frame to the rig's ack (hardware; else NaN)
+            ("safety_stop", T.TYPE_STRING, one),  # why the safety layer stops ("": running)
         ],
     )
     pool = descriptor_pool.Default()
@@ -283,8 +285,9 @@ class TrialRecorder:
         self._thread.start()
         return self
 
-    def close(self, status: str = "ok") -> RecorderStats:
-        """Write what is queued, the ``recorder`` metadata, and close both files."""
+    def close(self, status: str = "ok", reason: str = "") -> RecorderStats:
+        """Write what is queued, the ``recorder`` metadata (``status``, and ``reason``: why
+        the trial stopped early, if it did), and close both files."""
         if self._thread is None:
             return self.stats
         self._queue.put(_STOP)  # blocking: the loop is over, the writer drains the queue
@@ -301,6 +304,7 @@ class TrialRecorder:
                 "dropped_ticks": str(self.stats.dropped_ticks),
                 "images": str(self.stats.images),
                 "error": self.stats.error,
+                "reason": reason,
             },
         )
         self._mcap.finish()
@@ -397,6 +401,8 @@ class TrialRecorder:
             compute_time=tick.compute_time,
             measurement=tick.measured is not None,
             tracking_lost=tick.frame is not None and tick.tracked is None,
+            latency=tick.latency,
+            safety_stop=tick.safety_stop,
         )
         _stamp(st, t_ns)
         self._put("/controller/status", st, t_ns)

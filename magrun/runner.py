@@ -19,8 +19,9 @@ Output, per the recording contract::
     OUT/<protocol>/<condition slug>/trial-<k>.rrd
 
 The manifest is rewritten atomically after every trial: each entry's ``status`` is
-``pending``, ``ok`` or ``failed`` (with the error), so an interrupted campaign says exactly
-what it holds.
+``pending``, ``ok``, ``stopped`` (the safety layer ended it early: ``error`` says why and
+``stopped_at_s`` when; its recording is complete up to there), ``interrupted`` or ``failed``
+(with the error), so an interrupted campaign says exactly what it holds.
 """
 
 from __future__ import annotations
@@ -121,12 +122,41 @@ def _control_config(trial: Trial) -> Any:
     )
 
 
-def _make_rig(kind: str, robot: str, walls: Any, seed: int, camera: bool) -> Any:
+@dataclass(frozen=True)
+class HardwareSpec:
+    """The real rig (``--rig hardware``): a coil driver URL and a camera source.
+
+    ``driver``: ``tcp://host:port`` (the line protocol, :mod:`magrun.rigs.wire`) or a
+    plugin's scheme (:mod:`magrun.rigs.drivers`). ``camera``: ``driver`` (frames over the
+    driver's connection, as ``magrun rig-emulator`` serves them) or an OpenCV source (device
+    index, video file, GStreamer pipeline). Trials run one at a time, in real time.
+    """
+
+    driver: str
+    camera: str = "driver"
+
+    def __str__(self) -> str:
+        return "hardware"
+
+
+RigSpec = str | HardwareSpec
+
+
+def _make_rig(
+    kind: RigSpec, robot: str, walls: Any, seed: int, camera: bool, watchdog_s: float = 0.1
+) -> Any:
+    if isinstance(kind, HardwareSpec):
+        from magrun.rigs.cameras import camera_source
+        from magrun.rigs.drivers import load_driver
+        from magrun.rigs.hardware import HardwareRig
+        from magrun.robot import load_robot
+        from magrun.tracking.camera import Camera
+
+        driver = load_driver(kind.driver)
+        source = camera_source(kind.camera, driver)
+        return HardwareRig(driver, source, Camera(), load_robot(robot), watchdog_s)
     if kind == "hardware":
-        raise RunError(
-            "the hardware rig has no driver in this build yet; run with --rig sim "
-            "(the Rig interface in magrun/rigs/base.py is what a driver implements)"
-        )
+        raise RunError("--rig hardware needs --driver URL (e.g. tcp://127.0.0.1:5555)")
     from magrun.rigs.sim import SimRig
     from magrun.tracking.camera import CameraConfig
 
@@ -149,7 +179,7 @@ def _torch_threads(n: int) -> Iterator[None]:
 
 
 def execute_trial(
-    trial: Trial, out: str | Path, rig: str = "sim", progress: ProgressFn | None = None
+    trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
 ) -> dict[str, Any]:
     """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
     from magrun.control.methods import make_controller
@@ -157,6 +187,7 @@ def execute_trial(
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder, software_versions
     from magrun.robot import load_robot
+    from magrun.safety import SafetyConfig, SafetyLayer
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
     from magrun.tracking.tracker import Tracker
 
@@ -166,14 +197,27 @@ def execute_trial(
     t0 = time.perf_counter()
     base = Path(out) / trial.relpath
     recorder = None
+    the_rig = None
+    sim = rig == "sim"
     try:
         protocol = trial.protocol
         scene = build_scene(protocol)
         robot = load_robot(protocol.robot)
         cfg = _control_config(trial)
         controller = make_controller(trial.method, robot, cfg)
-        the_rig = _make_rig(rig, protocol.robot, scene.walls, trial.seed, protocol.feedback.camera)
-        tracker = Tracker.default(the_rig.camera, the_rig.nominal_robot) if the_rig.camera else None
+        the_rig = _make_rig(
+            rig, protocol.robot, scene.walls, trial.seed, protocol.feedback.camera,
+            protocol.safety.stall_timeout_ms * 1e-3,
+        )  # fmt: skip
+        if not sim:
+            the_rig.connect()  # the rig's channels and limits come from its controller
+        # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
+        # camera (its observations' poses), the loop's feedback derives from them
+        tracker = (
+            Tracker.default(the_rig.camera, the_rig.nominal_robot)
+            if sim and the_rig.camera
+            else None
+        )
         rate = trial.condition.get("tracking_rate_hz") or math.inf
         mimic = FluoroscopyMimic(
             rate,
@@ -183,7 +227,7 @@ def execute_trial(
         )
         meta = {
             **trial.describe(),
-            "rig": rig,
+            "rig": str(rig),
             "robot": protocol.robot,
             "robot_length_m": robot.length,
             "robot_diameter_m": robot.diameter,
@@ -209,14 +253,27 @@ def execute_trial(
             compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
         )
+        writer = protocol.recording.writer
         recorder = (
-            ProcessRecorder(base, setup, wait_when_full=rig == "sim")
-            if protocol.recording.writer == "process"
+            ProcessRecorder(base, setup, wait_when_full=sim)
+            if writer == "process" or (writer == "auto" and not sim)
             else TrialRecorder(base, setup)
         ).start()
         tick_progress = (
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )
+        limits = protocol.safety
+        margin = limits.workspace_margin_mm
+        safety = SafetyLayer(
+            controller.n_channels, controller.max_current, controller.max_change / controller.dt,
+            controller.dt,
+            SafetyConfig(
+                lost_timeout_s=limits.lost_timeout_s,
+                workspace_margin_m=None if margin is None else margin * 1e-3,
+                stall_timeout_s=limits.stall_timeout_ms * 1e-3,
+            ),
+            workspace_half_width=scene.half_width,
+        )  # fmt: skip
         with _torch_threads(1):
             log = run_trial(
                 controller, the_rig, scene.reference, feedback=mimic,
@@ -224,17 +281,21 @@ def execute_trial(
                 duration=protocol.trial_duration(trial.quick), progress=tick_progress,
                 tracker=tracker, on_tick=recorder.log,
                 frame_due=mimic.due if protocol.feedback.camera_frames == "fluoroscopy" else None,
-                charge_compute=protocol.controller.charge_compute_time and rig == "sim",
-                stop=lambda: interrupt.requested() is not None,
+                charge_compute=protocol.controller.charge_compute_time and sim,
+                stop=lambda: interrupt.requested() is not None, safety=safety,
             )  # fmt: skip
-        stats = recorder.close("interrupted" if log.interrupted else "ok")
+        status = "interrupted" if log.interrupted else "stopped" if log.stop_reason else "ok"
+        reason = log.stop_reason
+        if log.interrupted:
+            reason = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"
+        elif reason:
+            reason = f"safety stop at t = {safety.tripped_at:.2f} s: {reason}"
+        stats = recorder.close(status, reason)
         recorder = None
-        status = "interrupted" if log.interrupted else "ok"
-        error = stats.error
-        if log.interrupted and not error:
-            error = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"
+        error = stats.error or reason
         entry.update(
             status=status if not stats.error else "failed",
+            stopped_at_s=safety.tripped_at if log.stop_reason else None,
             error=error,
             ticks=len(log.t),
             dropped_ticks=stats.dropped_ticks,
@@ -245,11 +306,17 @@ def execute_trial(
             overruns=int(np.count_nonzero(log.compute_time > controller.dt)),
             median_compute_ms=float(np.median(log.compute_time) * 1e3),
         )
+        if not sim:
+            entry["hardware"] = the_rig.report()
     except Exception as exc:
         entry.update(status="failed", error=f"{type(exc).__name__}: {exc}")
         entry["traceback"] = traceback.format_exc(limit=8)
         if recorder is not None:
-            recorder.close("failed")
+            recorder.close("failed", entry["error"])
+    finally:
+        if the_rig is not None and not sim:
+            with suppress(Exception):  # the rig's watchdog covers a dead link
+                the_rig.disconnect()
     entry["wall_s"] = time.perf_counter() - t0
     return entry
 
@@ -281,8 +348,11 @@ def manifest_entry(trial: Trial) -> dict[str, Any]:
 # executors: each yields manifest entries as trials finish
 
 
-Executor = Callable[[list[Trial], Path, str, ProgressFn | None], Iterable[dict[str, Any]]]
+Executor = Callable[[list[Trial], Path, RigSpec, ProgressFn | None], Iterable[dict[str, Any]]]
 
+
+#: trial statuses a --resume keeps: the trial ran to its end, or to a safety stop
+COMPLETE = ("ok", "stopped")
 
 #: thread pools of native libraries, one thread each in worker processes
 THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
@@ -326,7 +396,7 @@ def _pool_progress(q: Any) -> ProgressFn:
     return send
 
 
-def _run_in_worker(trial: Trial, out: str, rig: str, q: Any) -> dict[str, Any]:
+def _run_in_worker(trial: Trial, out: str, rig: RigSpec, q: Any) -> dict[str, Any]:
     return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None)
 
 
@@ -342,7 +412,7 @@ def local_executor(jobs: int = 1) -> Executor:
     """Run trials in this process (``jobs`` = 1) or a pool of ``jobs`` processes."""
 
     def run(
-        trials: list[Trial], out: Path, rig: str, progress: ProgressFn | None
+        trials: list[Trial], out: Path, rig: RigSpec, progress: ProgressFn | None
     ) -> Iterator[dict[str, Any]]:
         if jobs <= 1:
             for trial in trials:
@@ -376,6 +446,34 @@ def local_executor(jobs: int = 1) -> Executor:
     return run
 
 
+@contextmanager
+def shared_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor]:
+    """A pool of ``jobs`` worker processes set up as :func:`local_executor`'s, for several
+    runs to share (:func:`pool_executor`)."""
+    ctx = multiprocessing.get_context("spawn")
+    with (
+        _one_thread_per_worker(),
+        cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool,
+    ):
+        yield pool
+
+
+def pool_executor(pool: cf.ProcessPoolExecutor) -> Executor:
+    """Trials into an existing pool: several protocols' runs, each on its own thread, share
+    the workers, so no worker idles at the end of one protocol while another has trials
+    (``magrun bench campaign``). No tick progress; a stop signal reaches the workers'
+    own handlers only (a terminal's Ctrl-C does)."""
+
+    def run(
+        trials: list[Trial], out: Path, rig: RigSpec, progress: ProgressFn | None
+    ) -> Iterator[dict[str, Any]]:
+        futures = {pool.submit(_run_in_worker, t, str(out), rig, None): t for t in trials}
+        for fut in cf.as_completed(futures):
+            yield _result_or_failure(fut.result, futures[fut])
+
+    return run
+
+
 def _signal_workers(pool: cf.ProcessPoolExecutor, signum: int | None) -> None:
     """Pass a stop signal on to the pool's worker processes (a terminal's Ctrl-C reaches
     them itself; ``kill`` of the parent does not)."""
@@ -399,7 +497,7 @@ def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Exe
         raise RunError("the Ray executor needs Ray: pip install 'magrun[ray]'") from exc
 
     def run(
-        trials: list[Trial], out: Path, rig: str, progress: ProgressFn | None
+        trials: list[Trial], out: Path, rig: RigSpec, progress: ProgressFn | None
     ) -> Iterator[dict[str, Any]]:
         started = not ray.is_initialized()
         if started:
@@ -437,7 +535,7 @@ def run_protocol(
     quick: bool = False,
     seed: int | None = None,
     jobs: int = 1,
-    rig: str = "sim",
+    rig: RigSpec = "sim",
     executor: Executor | None = None,
     overwrite: bool = False,
     protocol_file: str | None = None,
@@ -454,9 +552,18 @@ def run_protocol(
     A stop signal (:mod:`magrun.interrupt`) ends the running trials cleanly, starts no new
     one and records the signal under ``interrupted`` in the manifest.
     """
-    if rig not in RIGS:
+    if isinstance(rig, HardwareSpec):
+        if jobs != 1 or executor is not None:
+            raise RunError("the hardware rig runs one trial at a time: --jobs 1, local executor")
+        from magrun.rigs.drivers import DriverError, load_driver
+
+        try:
+            load_driver(rig.driver)  # an unknown scheme or a malformed URL fails here
+        except DriverError as exc:
+            raise RunError(str(exc)) from exc
+    elif rig not in RIGS:
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
-    if rig == "hardware":
+    elif rig == "hardware":
         _make_rig(rig, protocol.robot, None, 0, False)  # fails early and clearly
     out = Path(out)
     folder = out / protocol.name
@@ -481,7 +588,8 @@ def run_protocol(
         "description": protocol.description,
         "seed": protocol.seed if seed is None else seed,
         "quick": quick,
-        "rig": rig,
+        "rig": str(rig),
+        **({"driver": rig.driver, "camera": rig.camera} if isinstance(rig, HardwareSpec) else {}),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "software": software_versions(),
         "trials": [manifest_entry(t) for t in trials],
@@ -489,10 +597,10 @@ def run_protocol(
     index = {e["path"]: i for i, e in enumerate(manifest["trials"])}
     if previous is not None:
         for old in previous.get("trials", []):
-            done = old.get("status") == "ok" and (folder / str(old.get("mcap", ""))).is_file()
+            done = old.get("status") in COMPLETE and (folder / str(old.get("mcap", ""))).is_file()
             if done and old.get("path") in index:
                 manifest["trials"][index[old["path"]]] = old
-        kept = {e["path"] for e in manifest["trials"] if e.get("status") == "ok"}
+        kept = {e["path"] for e in manifest["trials"] if e.get("status") in COMPLETE}
         trials = [t for t in trials if manifest_entry(t)["path"] not in kept]
     write_manifest(path, manifest)
     run = executor or local_executor(jobs)

@@ -256,7 +256,7 @@ def test_hardware_rig_is_refused_before_anything_is_written(tmp_path: Path) -> N
     args = ["run", str(TINY), "--out", str(tmp_path), "--rig", "hardware"]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 2
-    assert "hardware rig" in result.output
+    assert "--rig hardware needs --driver" in result.output
     assert not any(tmp_path.iterdir())
 
 
@@ -407,8 +407,9 @@ def _long_tiny(tmp_path: Path, duration_s: float = 1.0) -> Path:
 
 
 def test_a_stop_request_ends_the_trial_cleanly_and_resume_runs_the_rest(tmp_path: Path) -> None:
-    """Stop requested at tick 10 of the first trial: it ends with its recordings indexed and
-    marked interrupted, no other trial starts; --resume keeps nothing unfinished and runs all."""
+    """Stop requested at tick 10 of the first trial: its currents ramp to zero (recorded), it
+    ends with its recordings indexed and marked interrupted, no other trial starts; --resume
+    keeps nothing unfinished and runs all."""
     import signal
 
     from magrun import interrupt
@@ -426,11 +427,15 @@ def test_a_stop_request_ends_the_trial_cleanly_and_resume_runs_the_rest(tmp_path
         statuses = [e["status"] for e in manifest["trials"]]
         assert statuses == ["interrupted", "pending", "pending", "pending"]
         first = manifest["trials"][0]
-        assert first["ticks"] == 10
+        assert 10 < first["ticks"] <= 10 + 3  # the ramp from ≤ 30 A at 12 A a tick
         assert "SIGTERM" in first["error"]
-        counts, _, meta = read_mcap(tmp_path / "out" / "tiny" / first["mcap"])  # indexed
-        assert counts["/robot/pose/actual"] == 10
+        counts, messages, meta = read_mcap(tmp_path / "out" / "tiny" / first["mcap"])  # indexed
+        assert counts["/robot/pose/actual"] == first["ticks"]
+        currents = [m for topic, _, m in messages if topic == "/coils/currents"]
+        assert not any(currents[-1].get("currents", []))  # the last tick drives 0 A
+        assert any(currents[-2].get("currents", []))
         assert meta["recorder"]["status"] == "interrupted"
+        assert "SIGTERM" in meta["recorder"]["reason"]
         with pytest.raises(RunError, match="--resume"):
             run_protocol(protocol, tmp_path / "out", jobs=1)
     finally:
@@ -445,6 +450,39 @@ def test_a_stop_request_ends_the_trial_cleanly_and_resume_runs_the_rest(tmp_path
     again = run_protocol(protocol, tmp_path / "out", jobs=1, resume=True)
     assert [e["status"] for e in again["trials"]] == ["ok"] * 4
     assert {p: p.stat().st_mtime_ns for p in mtimes} == mtimes
+
+
+def test_a_safety_stop_is_recorded_with_its_reason_and_kept_by_resume(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A trip at t ≥ 0.2 s (here: forced) ends the trial after the ramp to zero: status
+    "stopped", the reason in the manifest, the summary and the MCAP; --resume keeps it."""
+    from magrun.safety import SafetyLayer
+
+    check = SafetyLayer.check
+
+    def tripping(self, t, pose, tracked=None):
+        check(self, t, pose, tracked)
+        if t >= 0.2:
+            self.trip("forced by the test", t)
+
+    monkeypatch.setattr(SafetyLayer, "check", tripping)
+    protocol = load_protocol(_long_tiny(tmp_path))
+    manifest = run_protocol(protocol, tmp_path / "out", jobs=1)
+    entries = manifest["trials"]
+    assert {e["status"] for e in entries} == {"stopped"}
+    for e in entries:
+        assert e["error"].startswith("safety stop at t = 0.2")
+        assert e["error"].endswith("forced by the test")
+        assert e["stopped_at_s"] == pytest.approx(0.2, abs=0.04)
+        _, messages, meta = read_mcap(tmp_path / "out" / "tiny" / e["mcap"])
+        assert meta["recorder"]["status"] == "stopped"
+        assert meta["recorder"]["reason"] == e["error"]
+        currents = [m for topic, _, m in messages if topic == "/coils/currents"]
+        assert not any(currents[-1].get("currents", []))
+    monkeypatch.undo()
+    again = run_protocol(protocol, tmp_path / "out", jobs=1, resume=True)
+    assert [e["status"] for e in again["trials"]] == ["stopped"] * len(entries)
 
 
 def test_resume_refuses_another_runs_folder(tmp_path: Path) -> None:

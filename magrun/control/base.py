@@ -72,6 +72,7 @@ class ControlOutput:
     estimate: FloatArray  # (3,) the pose the plan started from
     predicted: FloatArray  # (3,) predicted pose at the next tick
     status: ControllerStatus
+    fault: str = ""  # a planner output the clamp had to repair (the safety layer stops on it)
 
 
 class Estimator(ABC):
@@ -162,6 +163,9 @@ class Controller:
         delta[2] = wrap_angle(delta[2])
         state = np.concatenate([estimate, delta / self.dt])
         plan = self.planner.plan(state, reference, self.currents)
+        fault = ""
+        if not np.all(np.isfinite(plan.currents)):
+            fault = f"the {self.name} planner returned non-finite currents"
         currents = clamp_currents(plan.currents, self.currents, self.max_current, self.max_change)
         predicted = plan.predicted_state
         if not np.allclose(currents, plan.currents, atol=1e-6, rtol=0) or not np.all(
@@ -171,7 +175,7 @@ class Controller:
         self._previous_estimate = estimate
         self._prediction = predicted[:3].copy()
         self.currents = currents
-        return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status)
+        return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
 
 
 def angle_near(angle: float, ref: float) -> float:

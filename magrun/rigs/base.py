@@ -76,6 +76,9 @@ class Rig(ABC):
     channel_names: tuple[str, ...]
     max_current: float  # A
     max_slew_rate: float  # A/s
+    #: s from the last observation to the rig's acknowledgement of the currents applied after
+    #: it (a hardware rig measures it; NaN in simulation)
+    last_latency: float = float("nan")
 
     def connect(self) -> None:  # noqa: B027 - optional hook, a no-op in simulation
         """Acquire the hardware (no-op in simulation)."""

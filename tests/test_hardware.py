@@ -1,0 +1,253 @@
+"""The hardware path without coils: line protocol, emulator, watchdog, driver, camera, runner."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from magrun.protocol import load_protocol
+from magrun.rigs.cameras import CameraError, OpenCVCamera
+from magrun.rigs.drivers import DriverError, TcpLineDriver, load_driver
+from magrun.rigs.emulator import RigEmulator
+from magrun.rigs.sim import SimRig
+from magrun.rigs.wire import LineConnection, WireError
+from magrun.runner import HardwareSpec, RunError, run_protocol
+from magrun.tracking.camera import CameraConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
+
+
+@pytest.fixture
+def emulator():
+    with RigEmulator(SimRig.default(camera=CameraConfig())) as emu:
+        yield emu
+
+
+def _driver(emu: RigEmulator, watchdog_s: float = 0.1) -> TcpLineDriver:
+    host, port = emu.address
+    driver = TcpLineDriver(host, port)
+    driver.open(watchdog_s)
+    return driver
+
+
+def test_driver_learns_the_rig_and_the_controller_enforces_its_limits(emulator) -> None:
+    driver = _driver(emulator)
+    try:
+        assert driver.channel_names == emulator.rig.channel_names
+        assert driver.max_current == emulator.rig.max_current
+        applied = driver.send(np.r_[1e3, -5.0, np.zeros(6)])  # 1 kA asked: the limit drives
+        assert applied[0] == emulator.rig.max_current
+        assert applied[1] == -5.0
+        _, frame = driver.grab()
+        assert frame.shape == (*emulator.rig.camera.shape, 3)
+        assert frame.dtype == np.uint8
+        assert driver.place([0.01, -0.01, 0.5])
+        assert np.allclose(emulator.rig.state[:3], [0.01, -0.01, 0.5])
+        assert not np.any(driver.zero())
+    finally:
+        driver.close()
+
+
+def test_bad_requests_get_err_and_a_nan_stops_the_currents(emulator) -> None:
+    import socket
+
+    conn = LineConnection(socket.create_connection(emulator.address))
+    try:
+        with pytest.raises(WireError, match="unknown command"):
+            conn.request("FLY 1", "OK")
+        with pytest.raises(WireError, match="needs 8 currents"):
+            conn.request("SET 1 1 2 3", "ACK")
+        conn.request("SET 2 " + " ".join(["5"] * 8), "ACK")
+        with pytest.raises(WireError, match="non-finite"):
+            conn.request("SET 3 nan 0 0 0 0 0 0 0", "ACK")
+        assert not np.any(emulator.rig.target)  # commanded to ramp down
+        with pytest.raises(WireError, match="bad number"):
+            conn.request("SET 4 x 0 0 0 0 0 0 0", "ACK")
+    finally:
+        conn.close()
+
+
+def test_watchdog_ramps_to_zero_when_commands_stop_and_refuses_until_armed(emulator) -> None:
+    """No SET for 100 ms: the currents go to zero without any client action; the trip time
+    is the last command plus 100 ms; SET is refused until ARM."""
+    driver = _driver(emulator, watchdog_s=0.1)
+    try:
+        driver.send(np.full(8, 10.0))
+        last = emulator.last_set
+        deadline = time.monotonic() + 2.0
+        while emulator.state != "watchdog" and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert emulator.state == "watchdog"
+        assert emulator.tripped_at == pytest.approx(last + 0.1, abs=1e-9)
+        assert not np.any(emulator.rig.target)
+        time.sleep(0.2)  # 10 A at the slew limit is gone in well under 0.2 s
+        assert not np.any(emulator.rig.driven)
+        with pytest.raises(DriverError, match="watchdog"):
+            driver.send(np.full(8, 1.0))
+        driver.conn.request("ARM", "OK")
+        assert driver.send(np.full(8, 1.0))[0] == 1.0
+    finally:
+        driver.close()
+
+
+def test_a_broken_connection_trips_the_watchdog_at_once(emulator) -> None:
+    driver = _driver(emulator, watchdog_s=10.0)
+    driver.send(np.full(8, 10.0))
+    driver.conn.close()  # a cable pulled: no BYE, no ZERO
+    deadline = time.monotonic() + 2.0
+    while emulator.state != "watchdog" and time.monotonic() < deadline:
+        time.sleep(0.001)
+    assert emulator.state == "watchdog"
+    assert not np.any(emulator.rig.target)
+
+
+def test_unknown_driver_schemes_and_bad_urls_are_refused(monkeypatch) -> None:
+    with pytest.raises(DriverError, match="installed schemes: tcp"):
+        load_driver("serial:///dev/ttyUSB0")
+    with pytest.raises(DriverError, match="tcp://host:port"):
+        load_driver("tcp://nohost")
+    with pytest.raises(DriverError, match="cannot reach"):
+        TcpLineDriver("127.0.0.1", 1).open(0.1)
+
+    class FakeEntryPoint:
+        name = "mylab"
+
+        def load(self):
+            return TcpLineDriver
+
+    monkeypatch.setattr("magrun.rigs.drivers.entry_points", lambda group: [FakeEntryPoint()])
+    with pytest.raises(DriverError, match="tcp://host:port"):  # the plugin's own parsing
+        load_driver("mylab://x")
+
+
+def test_opencv_camera_reads_a_video_file_as_rgb(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 48))
+    for k in range(5):
+        frame = np.zeros((48, 64, 3), np.uint8)
+        frame[..., 2] = 200  # red in BGR
+        frame[:, k * 10 : k * 10 + 8, 1] = 200
+        writer.write(frame)
+    writer.release()
+    cam = OpenCVCamera(str(path))
+    cam.open()
+    got = [cam.read() for _ in range(6)]
+    cam.close()
+    assert all(g is not None for g in got[:5])
+    assert got[5] is None  # the end of the file: a dropped frame
+    _, rgb = got[0]
+    assert rgb.shape == (48, 64, 3)
+    assert rgb[..., 0].mean() > 150  # red is channel 0 in RGB
+    with pytest.raises(CameraError, match="cannot open"):
+        OpenCVCamera(str(tmp_path / "missing.avi")).open()
+
+
+def _serve(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, str]:
+    """`magrun rig-emulator` in its own process (no GIL shared with the loop), any port."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magrun.cli", "rig-emulator", "--port", "0", *args],
+        stdout=subprocess.PIPE, text=True, cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    return proc, line.split()[-1]
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    proc.wait(10)
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
+def test_protocol_runs_on_the_emulated_rig_in_real_time(tmp_path: Path) -> None:
+    """The tiny protocol through driver, camera frames over the wire, UNet tracking in the
+    rig, real-time pacing: every trial ok, latency recorded per tick, the trials last their
+    duration of wall time, and every 5th frame dropped is counted, not fatal."""
+    proc, url = _serve(tmp_path, "--drop-every", "5")
+    try:
+        manifest = run_protocol(load_protocol(TINY), tmp_path / "out", rig=HardwareSpec(url))
+    finally:
+        _stop(proc)
+    assert manifest["rig"] == "hardware"
+    assert manifest["driver"] == url
+    for e in manifest["trials"]:
+        assert e["status"] == "ok", e["error"]
+        hw = e["hardware"]
+        assert hw["dropped_frames"] == pytest.approx(e["ticks"] / 5, abs=2)
+        assert 0 < hw["latency_median_ms"] < 1e3 / 25.5
+        assert e["wall_s"] >= 0.95  # paced: a 1 s trial takes at least its second
+        with (tmp_path / "out" / "tiny" / e["mcap"]).open("rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            status = [m for _, ch, _, m in reader.iter_decoded_messages()
+                      if ch.topic == "/controller/status"]  # fmt: skip
+        latencies = np.array([s.latency for s in status])
+        assert np.all(np.isfinite(latencies))
+        assert np.all(latencies > 0)
+
+
+def test_a_driver_that_disconnects_mid_run_fails_the_trial_cleanly(tmp_path: Path) -> None:
+    """The emulator dies at tick 10: the trial fails naming the driver, its recording is
+    finished (indexed, status failed), and the run goes on to report it."""
+    proc, url = _serve(tmp_path)
+
+    def progress(relpath: str, done: int, total: int) -> None:
+        if done == 10 and proc.poll() is None:
+            proc.kill()
+
+    try:
+        protocol = load_protocol(TINY)
+        manifest = run_protocol(
+            protocol, tmp_path / "out", rig=HardwareSpec(url), progress=progress
+        )
+    finally:
+        _stop(proc)
+    first = manifest["trials"][0]
+    assert first["status"] == "failed"
+    assert "rig" in first["error"]
+    with (tmp_path / "out" / "tiny" / first["mcap"]).open("rb") as fh:
+        reader = make_reader(fh)
+        assert reader.get_summary() is not None  # finished and indexed
+        meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    assert meta["recorder"]["status"] == "failed"
+    assert all(e["status"] == "failed" for e in manifest["trials"][1:])  # no rig any more
+    json.dumps(manifest)
+
+
+def test_hardware_needs_a_driver_and_one_job(tmp_path: Path) -> None:
+    protocol = load_protocol(TINY)
+    with pytest.raises(RunError, match="--driver"):
+        run_protocol(protocol, tmp_path / "a", rig="hardware")
+    with pytest.raises(RunError, match="one trial at a time"):
+        run_protocol(protocol, tmp_path / "b", rig=HardwareSpec("tcp://127.0.0.1:9"), jobs=2)
+    with pytest.raises(RunError, match="installed schemes"):
+        run_protocol(protocol, tmp_path / "c", rig=HardwareSpec("can://bus0"))
+
+
+def test_bench_rig_json() -> None:
+    """The figures add up: every trial ok with latencies, each stall caught after the timeout."""
+    from click.testing import CliRunner
+
+    from magrun.cli import cli
+
+    args = ["bench", "rig", str(TINY), "--stalls", "2", "--watchdog-ms", "50", "--json"]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    for t in doc["run"]["trials"]:
+        assert t["status"] == "ok"
+        assert t["latency_median_ms"] <= t["latency_p99_ms"] <= t["latency_max_ms"]
+    w = doc["watchdog"]
+    assert w["stalls"] == 2
+    assert 50 <= w["reaction_median_ms"] <= w["reaction_max_ms"]
+    assert 0 <= w["ramp_to_zero_median_ms"] <= w["ramp_to_zero_max_ms"]
