@@ -465,10 +465,12 @@ import sys, time
 import numpy as np
 from magrun.control.base import ControllerStatus
 from magrun.loop import Tick
+from magrun.recorder_process import ProcessRecorder
 from magrun.recording import RecordingSetup, TrialRecorder
-dt, base = float(sys.argv[1]), sys.argv[2]
+dt, base, writer = float(sys.argv[1]), sys.argv[2], sys.argv[3]
 setup = RecordingSetup(trial={"method": "bench"}, channel_names=tuple("abcdefgh"))
-rec = TrialRecorder(base, setup, flush_s=1.0).start()
+cls = ProcessRecorder if writer == "process" else TrialRecorder
+rec = cls(base, setup, flush_s=1.0).start()
 status = ControllerStatus(0.001, 1, True, "", "0")
 start = time.perf_counter()
 k = 0
@@ -483,16 +485,38 @@ while True:
 """
 
 
+def _wait_for_footer(path: Any, timeout: float) -> None:
+    """Until ``path`` ends with MCAP's closing magic (its writer finished it) or ``timeout``."""
+    magic = b"\x89MCAP0\r\n"
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            with open(path, "rb") as fh:
+                fh.seek(-len(magic), 2)
+                if fh.read() == magic:
+                    return
+        except OSError:
+            pass
+        time.sleep(0.05)
+
+
 def bench_sigkill(
-    kills: int = 20, dt: float = 1 / 25.5, window: tuple[float, float] = (1.0, 6.0), seed: int = 0
+    kills: int = 20,
+    dt: float = 1 / 25.5,
+    window: tuple[float, float] = (1.0, 6.0),
+    seed: int = 0,
+    writer: str = "thread",
 ) -> dict[str, Any]:
     """Kill a recording process with SIGKILL at random moments and recover each file.
 
-    Each run starts a process that records ticks of ``dt`` s at real-time pace (the trial
-    recorder, one chunk per second of trial time), kills it after a uniformly random time
-    in ``window`` s, then recovers the file (:func:`magrun.recover.recover`). Lost = ticks handed to
+    Each run starts a process that records ticks of ``dt`` s at real-time pace (one chunk
+    per second of trial time) with the ``writer`` (``thread``: in that process, so the kill
+    takes the writer too; ``process``: the writer is a child process, which survives the
+    kill of the loop's process and finishes the file), kills it after a uniformly random
+    time in ``window`` s, then recovers the file (:func:`magrun.recover.recover`; for the
+    process writer, once the writer has finished it, at most 10 s). Lost = ticks handed to
     the recorder (printed by the child before it died) minus ticks recovered, in ticks and
-    in seconds of trial time.
+    in seconds of trial time; ``complete``: the file had its footer (no recovery needed).
     """
     import signal
     import subprocess
@@ -508,7 +532,7 @@ def bench_sigkill(
         for i in range(kills):
             base = Path(tmp) / f"kill-{i}"
             child = subprocess.Popen(
-                [sys.executable, "-c", _RECORDING_CHILD, str(dt), str(base)],
+                [sys.executable, "-c", _RECORDING_CHILD, str(dt), str(base), writer],
                 stdout=subprocess.PIPE,
                 text=True,
             )
@@ -521,6 +545,8 @@ def bench_sigkill(
             child.stdout.close()
             child.wait()
             handed = max(int(x) for x in printed if x.strip()) + 1
+            if writer == "process":
+                _wait_for_footer(base.with_suffix(".mcap"), timeout=10.0)
             report = recover(base.with_suffix(".mcap"), base.with_name(base.name + "-r.mcap"))
             got = report.per_topic.get("/robot/pose/desired", 0)
             rows.append(
@@ -532,18 +558,21 @@ def bench_sigkill(
                     "trial_s_lost": (handed - got) * dt,
                     "messages_recovered": report.messages,
                     "bytes_lost": report.bytes_lost,
+                    "complete": report.complete,
                 }
             )
     lost = np.array([r["trial_s_lost"] for r in rows])
     return {
         "benchmark": "sigkill",
         "machine": machine(),
+        "writer": writer,
         "kills": kills,
         "tick_s": dt,
         "flush_s": 1.0,
         "max_trial_s_lost": float(lost.max()),
         "median_trial_s_lost": float(np.median(lost)),
         "max_ticks_lost": int(max(r["ticks_lost"] for r in rows)),
+        "complete_files": sum(bool(r["complete"]) for r in rows),
         "runs": rows,
     }
 

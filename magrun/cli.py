@@ -1131,20 +1131,25 @@ def bench_recorder(
 @bench.command("sigkill")
 @click.option("--kills", default=20, show_default=True, help="Processes to kill.")
 @click.option("--seed", default=0, show_default=True, help="Seeds the kill moments.")
+@click.option(
+    "--writer", type=click.Choice(["thread", "process"]), default="thread", show_default=True,
+    help="The recorder's writer: in the killed process, or a child process that survives it.",
+)  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
-def bench_sigkill(kills: int, seed: int, as_json: bool) -> None:
+def bench_sigkill(kills: int, seed: int, writer: str, as_json: bool) -> None:
     """Recordings after SIGKILL: kill a recording process at random moments, recover, count."""
     from magrun.bench import bench_sigkill as run
 
     if kills < 1:
         raise InputError("--kills must be at least 1")
-    result = run(kills=kills, seed=seed)
+    result = run(kills=kills, seed=seed, writer=writer)
     if as_json:
         click.echo(json.dumps(result))
         return
     click.echo(
-        f"{kills} kills: trial time lost max {result['max_trial_s_lost']:.3f} s, median "
-        f"{result['median_trial_s_lost']:.3f} s (chunks closed every {result['flush_s']} s)"
+        f"{kills} kills ({writer} writer): trial time lost max {result['max_trial_s_lost']:.3f}"
+        f" s, median {result['median_trial_s_lost']:.3f} s (chunks closed every"
+        f" {result['flush_s']} s); {result['complete_files']} files finished with their footer"
     )
 
 

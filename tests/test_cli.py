@@ -341,6 +341,20 @@ def test_bench_sigkill_json(runner: CliRunner) -> None:
     assert 0 <= doc["max_trial_s_lost"] <= doc["flush_s"] + 2 * doc["tick_s"]
 
 
+def test_bench_sigkill_process_writer_finishes_the_file(runner: CliRunner) -> None:
+    """The writer outlives the killed loop: the file has its footer and holds every tick
+    the loop handed over (one more if the kill fell between handing over and printing)."""
+    args = ["bench", "sigkill", "--kills", "1", "--writer", "process", "--json"]
+    result = runner.invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    (run,) = doc["runs"]
+    assert doc["writer"] == "process"
+    assert run["complete"]
+    assert doc["complete_files"] == 1
+    assert run["ticks_lost"] in (0, -1)
+
+
 def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
     tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
     args = ["bench", "campaign", str(tiny), "--jobs", "1", "--out", str(tmp_path), "--json"]
