@@ -493,20 +493,18 @@ class TrialRecorder:
     def _rerun_tick(
         self, tick: Tick, poses: dict[str, FloatArray | None], jpeg: bytes | None, image: bool
     ) -> None:
-        """Buffer the tick's Rerun rows; images go out at once, the rest in columns.
+        """Buffer the tick's Rerun rows, JPEG images included; raw images go out at once.
 
         One ``rr.log`` costs ~0.1 ms here, a row of ``send_columns`` ~2 µs: the buffered
-        series are sent every ``flush_s`` of trial time (with the MCAP chunk) and at close.
+        rows are sent every ``flush_s`` of trial time (with the MCAP chunk) and at close.
         """
         import rerun as rr
 
         if image and tick.frame is not None:
-            self._rec.set_time("t", duration=tick.t)
-            if jpeg is not None:
-                self._rec.log(
-                    "/camera/image", rr.EncodedImage(contents=jpeg, media_type="image/jpeg")
-                )
+            if jpeg is not None:  # buffered: sent in columns with the series
+                self._rr_rows("/camera/image", tick.t, jpeg)
             else:
+                self._rec.set_time("t", duration=tick.t)
                 self._rec.log("/camera/image", rr.Image(tick.frame))
         cam = self.setup.camera
         add = self._rr_rows
@@ -541,6 +539,14 @@ class TrialRecorder:
             if not times:
                 continue
             index = [rr.TimeColumn("t", duration=np.asarray(times))]
+            if entity == "/camera/image":
+                columns = rr.EncodedImage.columns(
+                    blob=values, media_type=["image/jpeg"] * len(values)
+                )
+                self._rec.send_columns(entity, indexes=index, columns=columns)
+                times.clear()
+                values.clear()
+                continue
             data = np.asarray(values, dtype=np.float64)
             if entity.startswith(("/workspace/", "/camera/")):
                 columns = rr.Points2D.columns(positions=data.reshape(-1, 2))

@@ -121,3 +121,16 @@ def test_recorder_shortens_the_gil_switch_interval_only_while_it_runs(tmp_path: 
         rec.log(_ticks(1, None)[0])
         assert sys.getswitchinterval() == pytest.approx(min(before, SWITCH_INTERVAL_S))
     assert sys.getswitchinterval() == before
+
+
+def test_jpeg_frames_reach_the_rrd_in_columns(tmp_path: Path) -> None:
+    """JPEG frames are buffered and sent with the series: one image row per recorded frame
+    (every 3rd here), each the MCAP's JPEG bytes."""
+    frame = np.random.default_rng(4).integers(0, 256, (32, 48, 3), dtype=np.uint8)
+    setup = RecordingSetup(
+        trial={"method": "x"}, channel_names=tuple("abcdefgh"), rerun_image_every=3
+    )
+    n = 40  # 1.6 s at 25 Hz: a periodic flush and the final one
+    rec = _record(tmp_path / "jpeg", setup, _ticks(n, frame))
+    assert _rrd_rows(rec.rrd_path)["/camera/image"] == math.ceil(n / 3)
+    assert rec.stats.images == n

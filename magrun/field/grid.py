@@ -172,7 +172,11 @@ class HeldField:
         """``(B, G)`` at (x, y) m: B = [Bx, By] in T, G = ([∂Bx/∂x, ∂Bx/∂y], [∂By/∂x, ∂By/∂y])
         in T/m, the nested form :func:`magrun.robot.discrete_step` takes."""
         i, j, tx, ty = self.cells.locate(x, y)
+        return _blend(self.cell(i, j), tx, ty)
+
+    def cell(self, i: int, j: int) -> list[float]:
+        """Cell (i, j)'s corner values for the held currents: [00 (6), 01 (6), 10 (6), 11 (6)]."""
         v = self._contracted.get((i, j))
         if v is None:
             v = self._contracted[(i, j)] = (self.currents @ self.cells.corners(i, j)).tolist()
-        return _blend(v, tx, ty)
+        return v
