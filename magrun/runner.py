@@ -270,7 +270,6 @@ def execute_trial(
             SafetyConfig(
                 lost_timeout_s=limits.lost_timeout_s,
                 workspace_margin_m=None if margin is None else margin * 1e-3,
-                stall_timeout_s=limits.stall_timeout_ms * 1e-3,
             ),
             workspace_half_width=scene.half_width,
         )  # fmt: skip

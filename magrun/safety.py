@@ -21,8 +21,9 @@ protocol's square plus ``workspace_margin_m``), and on request (SIGINT / SIGTERM
 :meth:`trip`). The first reason is kept: :attr:`reason`, with the trial time :attr:`tripped_at`.
 
 A stalled control loop cannot be caught from inside the loop: that is the job of the
-watchdog on the driver's side of a hardware rig (``stall_timeout_s``), which ramps the
-currents to zero when no command arrives in time.
+watchdog on the amplifier controller's side of a hardware rig (:mod:`magrun.rigs.wire`,
+armed with the protocol's ``safety.stall_timeout_ms``), which ramps the currents to zero when
+no command arrives in time.
 """
 
 from __future__ import annotations
@@ -46,8 +47,6 @@ class SafetyConfig:
     lost_timeout_s: float | None = 1.0
     #: how far the robot may go beyond the workspace square before the trial stops, m
     workspace_margin_m: float | None = 0.0
-    #: the driver-side watchdog: no command for this long ramps the currents to zero, s
-    stall_timeout_s: float = 0.1
 
 
 class SafetyLayer:
