@@ -42,14 +42,14 @@ from typing import Any
 import numpy as np
 
 from magrun.loop import Tick
-from magrun.recording import RecorderStats, RecordingSetup, TrialRecorder
+from magrun.recording import Recorder, RecorderStats, RecordingSetup, TrialRecorder
 
 #: bytes of each slot kept for the pickled tick (a tick without its frame is ~2 KB)
 META_BYTES = 16 << 10
 _HEADER = 16  # int64 pickle length, int64 frame length (-1: a stop entry)
 
 
-class ProcessRecorder:
+class ProcessRecorder(Recorder):
     """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` from a child process.
 
     Parameters
@@ -75,10 +75,7 @@ class ProcessRecorder:
         start_timeout: float = 60.0,
         wait_when_full: bool = False,
     ) -> None:
-        self.base = Path(base)
-        self.setup = setup
-        self.stats = RecorderStats()
-        self.status = "ok"
+        super().__init__(base, setup)
         self.slots = slots
         self.flush_s = flush_s
         self.start_timeout = start_timeout
@@ -86,14 +83,6 @@ class ProcessRecorder:
         self._proc: Any = None
         self._ring: SharedMemory | None = None
         self._counters: SharedMemory | None = None
-
-    @property
-    def mcap_path(self) -> Path:
-        return self.base.with_name(self.base.name + ".mcap")
-
-    @property
-    def rrd_path(self) -> Path:
-        return self.base.with_name(self.base.name + ".rrd")
 
     # ---- lifecycle ---------------------------------------------------------------------
 
@@ -172,12 +161,6 @@ class ProcessRecorder:
             self.stats.error = written.error
         self.status = status if not self.stats.error else "failed"
         return self.stats
-
-    def __enter__(self) -> ProcessRecorder:
-        return self.start()
-
-    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        self.close("ok" if exc_type is None else "failed")
 
     # ---- the ring ----------------------------------------------------------------------
 

@@ -36,10 +36,11 @@ import platform
 import queue
 import sys
 import threading
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import cv2
 import numpy as np
@@ -217,7 +218,45 @@ class RecordingSetup:
 _STOP = object()
 
 
-class TrialRecorder:
+class Recorder(ABC):
+    """What the loop and the runner use of a trial recorder, whichever writes the files
+    (:class:`TrialRecorder` on a thread, :class:`~magrun.recorder_process.ProcessRecorder`
+    in a child process): ``start``, ``log``, ``close``, ``stats`` and the two paths."""
+
+    def __init__(self, base: str | Path, setup: RecordingSetup) -> None:
+        self.base = Path(base)
+        self.setup = setup
+        self.stats = RecorderStats()
+        self.status = "ok"
+
+    @property
+    def mcap_path(self) -> Path:
+        return self.base.with_name(self.base.name + ".mcap")
+
+    @property
+    def rrd_path(self) -> Path:
+        return self.base.with_name(self.base.name + ".rrd")
+
+    @abstractmethod
+    def start(self) -> Self:
+        """Open both files."""
+
+    @abstractmethod
+    def log(self, tick: Tick) -> None:
+        """Hand a tick to the writer; never blocks the loop."""
+
+    @abstractmethod
+    def close(self, status: str = "ok", reason: str = "") -> RecorderStats:
+        """Write what is pending and the ``recorder`` metadata; finish both files."""
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self.close("ok" if exc_type is None else "failed")
+
+
+class TrialRecorder(Recorder):
     """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread.
 
     Use as a context manager, or call :meth:`start` and :meth:`close`::
@@ -229,22 +268,11 @@ class TrialRecorder:
     def __init__(
         self, base: str | Path, setup: RecordingSetup, queue_size: int = 256, flush_s: float = 1.0
     ) -> None:
-        self.base = Path(base)
-        self.setup = setup
-        self.stats = RecorderStats()
-        self.status = "ok"
+        super().__init__(base, setup)
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._flush_ns = int(flush_s * 1e9)
         self._thread: threading.Thread | None = None
         self._frames = 0  # camera frames seen (ticks may have none)
-
-    @property
-    def mcap_path(self) -> Path:
-        return self.base.with_name(self.base.name + ".mcap")
-
-    @property
-    def rrd_path(self) -> Path:
-        return self.base.with_name(self.base.name + ".rrd")
 
     # ---- loop side ---------------------------------------------------------------------
 
@@ -312,12 +340,6 @@ class TrialRecorder:
         self._rec.flush(timeout_sec=60.0)
         self._rec.disconnect()
         return self.stats
-
-    def __enter__(self) -> TrialRecorder:
-        return self.start()
-
-    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
-        self.close("ok" if exc_type is None else "failed")
 
     # ---- writer thread -----------------------------------------------------------------
 
