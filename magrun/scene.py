@@ -146,6 +146,12 @@ def out_and_back(
     return Trajectory(t=t, poses=poses)
 
 
+def capsule_disks(half_axis: float, radius: float) -> FloatArray:
+    """Offsets (m) along a capsule's axis of the disks :meth:`Walls.resolve_capsule` tests."""
+    n_disk = math.ceil(2 * half_axis / (radius / 2)) + 1 if half_axis > 0 else 1
+    return np.linspace(-half_axis, half_axis, n_disk) if n_disk > 1 else np.zeros(1)
+
+
 @dataclass(frozen=True)
 class Walls:
     """Straight wall segments, shape (n, 2, 2): ``segments[i] = [[x0, y0], [x1, y1]]`` in m."""
@@ -228,8 +234,7 @@ class Walls:
         x, y, th, vx, vy, om = state
         if self.segments.size == 0:
             return state, False
-        n_disk = math.ceil(2 * half_axis / (radius / 2)) + 1 if half_axis > 0 else 1
-        s = np.linspace(-half_axis, half_axis, n_disk) if n_disk > 1 else np.zeros(1)
+        s = capsule_disks(half_axis, radius)
         a, b = self.segments[:, 0], self.segments[:, 1]
         ab = b - a
         den = np.einsum("ij,ij->i", ab, ab)

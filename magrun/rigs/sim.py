@@ -23,8 +23,10 @@ true pose
 seeded with the trial, for the tracker to work on as it would on the real rig.
 
 The plant integrates :func:`magrun.robot.discrete_step` on a fine step (1 ms by default),
-re-evaluating the field and the ramping currents every step (the field through
-:class:`magrun.field.grid.GridCells`, each grid cell's corners gathered once).
+re-evaluating the field and the ramping currents every step. By default the sub-steps and the
+wall contacts run compiled (:mod:`magrun.rigs.kernel`, Numba); ``compiled=False`` runs the
+Python reference (the field through :class:`magrun.field.grid.GridCells`, each grid cell's
+corners gathered once), which the tests compare with it.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid, GridCells, HeldField
 from magrun.rigs.base import Observation, Rig, clamp_currents
 from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
-from magrun.scene import Walls
+from magrun.scene import Walls, capsule_disks
 from magrun.tracking.camera import Camera, CameraConfig
 from magrun.tracking.render import Renderer
 
@@ -99,6 +101,9 @@ class SimRig(Rig):
         Integration step, s.
     camera : CameraConfig, optional
         Render a camera frame with every observation; default: no frames.
+    compiled : bool
+        Integrate with the Numba kernel (:mod:`magrun.rigs.kernel`, ~50× faster); False runs
+        the Python reference (:func:`magrun.robot.discrete_step`), which the tests compare.
     """
 
     def __init__(
@@ -111,6 +116,7 @@ class SimRig(Rig):
         seed: int = 0,
         fine_step: float = 1e-3,
         camera: CameraConfig | None = None,
+        compiled: bool = True,
     ) -> None:
         if grid.channel_names != coils.channel_names:
             raise ValueError("the field grid was built for other channels than the coil system")
@@ -132,6 +138,13 @@ class SimRig(Rig):
         self._contact_radius = robot.diameter / 2
         self._half_axis = max(robot.length / 2 - self._contact_radius, 0.0)
         self._reach = self._half_axis + self._contact_radius  # farthest body point from centre
+        self.compiled = compiled
+        if compiled:
+            from magrun.rigs.kernel import ROBOT_FIELDS, free_substeps, resolve_capsule
+
+            self._kernel, self._resolve = free_substeps, resolve_capsule
+            self._disks = capsule_disks(self._half_axis, self._contact_radius)
+            self._robot_vector = np.array([getattr(self.robot, f) for f in ROBOT_FIELDS])
         self.reset([0.0, 0.0, 0.0])
 
     @classmethod
@@ -187,8 +200,12 @@ class SimRig(Rig):
     def advance(self, duration: float) -> None:
         n = max(1, round(duration / self.fine_step))
         h = duration / n
-        state = tuple(self.state)
         ramp = self._ramp(n, h)  # the driven currents after each ramping sub-step
+        if self.compiled:
+            self._advance_compiled(n, h, ramp)
+            self.t += duration
+            return
+        state = tuple(self.state)
         field: Callable[[float, float], tuple[list[float], Any]]
         for k in range(len(ramp)):  # the step uses the current at its midpoint
             drive = 0.5 * (self.driven + ramp[k]) * self.coil_gains
@@ -203,9 +220,39 @@ class SimRig(Rig):
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
 
+    def _advance_compiled(self, n: int, h: float, ramp: FloatArray) -> None:
+        """:meth:`advance`'s sub-steps in the Numba kernel, the contacts resolved here."""
+        m = len(ramp)
+        drives = np.empty((n, self.coils.n_channels))  # each sub-step's effective currents
+        if m:  # ramping: the current at the sub-step's midpoint, as in the reference
+            before = np.vstack([self.driven[None], ramp[:-1]])
+            drives[:m] = 0.5 * (before + ramp) * self.coil_gains
+            self.driven = ramp[-1]
+        drives[m:] = self.target * self.coil_gains
+        g = self.grid
+        state = self.state.copy()
+        k = 0
+        while k < n:
+            cx, cy, slack = self._clear[:3]
+            k = self._kernel(
+                state, drives, k, g.table, g.x0, g.y0, g.step, self._robot_vector, h,
+                cx, cy, slack,
+            )  # fmt: skip
+            if math.hypot(state[0] - cx, state[1] - cy) >= slack:
+                state[:] = self._contact_step(tuple(state.tolist()))
+        self.state = state
+
     def _contact_step(self, state: tuple[float, ...]) -> tuple[float, ...]:
         """Walls in reach push the body out (after each sub-step)."""
         walls = self._walls_in_reach(state[0], state[1])
+        if walls is not None and self.compiled:
+            out = np.array(state)
+            if self._resolve(
+                out, walls.segments, self._disks, self._contact_radius,
+                self.robot.drag_perpendicular, self.robot.drag_rotation, 16,
+            ):  # fmt: skip
+                self._contact = True
+            return tuple(out.tolist())
         if walls is not None:
             state, touched = walls.resolve_capsule(
                 state, self._half_axis, self._contact_radius,
