@@ -122,6 +122,8 @@ def bench_nmpc(
                 "max_ms": float(np.max(solve) * 1e3),
                 "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
                 "failed_solves": sum(not s.success for s in log.status),
+                # RTI: QPs HPIPM's fast preset failed and the robust one solved
+                "robust_retries": getattr(controller.planner.backend, "robust_retries", 0),
                 "achievable_rate_hz": float(1.0 / np.median(solve)),
                 "rms_position_mm": log.rms_position_mm,
                 "rms_orientation_deg": log.rms_orientation_deg,

@@ -179,6 +179,39 @@ def test_rti_converges_to_the_ipopt_optimum(zernike_model, magnet_robot, kind: s
         assert np.max(S[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
 
 
+class _FailingQP:
+    """Stands in for the fast HPIPM preset: solves with it, then reports failure."""
+
+    def __init__(self, qp: object) -> None:
+        self.qp = qp
+
+    def __call__(self, **kw: object) -> object:
+        return self.qp(**kw)  # type: ignore[operator]
+
+    def stats(self) -> dict[str, object]:
+        return {"success": False, "return_status": "forced failure"}
+
+
+def test_a_qp_the_fast_preset_fails_is_solved_by_the_robust_one(
+    zernike_model, magnet_robot
+) -> None:
+    """Every QP handed to the robust preset after the fast one failed: the same plan (the SQP
+    iterations end ~2e-6 apart in normalised current, against the 1e-4 both keep to IPOPT's
+    optimum above), one retry per QP, and no failure reported."""
+    fast, u_fast = _solve(zernike_model, magnet_robot, "rti", "slew")
+    assert fast.backend.robust_retries == 0  # this problem needs no retry
+
+    cfg = NMPCConfig(solver="rti", tol=1e-10, **CONVERGE)  # type: ignore[arg-type]
+    nmpc = NMPC(zernike_model, magnet_robot, cfg)
+    nmpc.backend.qp_solver = _FailingQP(nmpc.backend.qp_solver)  # type: ignore[assignment]
+    state, ref, previous = _problem("slew")
+    plan = nmpc.plan(state, ref, previous)
+    assert plan.status.success, plan.status
+    assert nmpc.backend.robust_retries == plan.status.iterations >= 2
+    u_robust = nmpc.backend.currents_plan()
+    assert_allclose(u_robust, u_fast, atol=1e-5)
+
+
 def test_rti_on_the_lookup_tables_reaches_the_ipopt_optimum(lut_model, magnet_robot) -> None:
     """Baseline 5's model through the same two solvers: same optimum."""
     _, u_rti = _solve(lut_model, magnet_robot, "rti", "track")
