@@ -123,7 +123,9 @@ def bench_nmpc(
                 "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
                 "failed_solves": sum(not s.success for s in log.status),
                 # RTI: QPs HPIPM's fast preset failed and the robust one solved
-                "robust_retries": getattr(controller.planner.backend, "robust_retries", 0),
+                "robust_retries": getattr(
+                    getattr(controller.planner, "backend", None), "robust_retries", 0
+                ),
                 "achievable_rate_hz": float(1.0 / np.median(solve)),
                 "rms_position_mm": log.rms_position_mm,
                 "rms_orientation_deg": log.rms_orientation_deg,
