@@ -87,6 +87,40 @@ def test_lut_reproduces_its_table_at_grid_nodes(
     assert_allclose(G[:, k], fmap.dB[::10, ::10].reshape(-1, 2, 2), rtol=1e-12, atol=1e-15)
 
 
+def test_lut_evenly_spaced_grid_equals_scipys_interpolator(
+    reference: ReferenceMaps, rng: np.random.Generator
+) -> None:
+    """The lookup table's fast bilinear read against RegularGridInterpolator (linear, linear
+    extrapolation) on the same table: inside the grid, on its nodes and edges, and beyond it
+    (an optimiser's infeasible iterates), to 1e-12 of the table's scale."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from magrun.field.lut import _table, _UniformGrid
+
+    fmap = reference["small"]
+    table = _table(fmap)
+    fast = _UniformGrid.of(fmap.x, fmap.y, table)
+    assert fast is not None  # the shipped maps are evenly spaced
+    scipy_rgi = RegularGridInterpolator(
+        (fmap.x, fmap.y), table, method="linear", bounds_error=False, fill_value=None
+    )
+    lo, hi = np.array([fmap.x[0], fmap.y[0]]), np.array([fmap.x[-1], fmap.y[-1]])
+    span = hi - lo
+    q = np.vstack(
+        [
+            rng.uniform(lo, hi, size=(500, 2)),
+            fmap.points()[::7, ::9].reshape(-1, 2),  # nodes
+            np.column_stack([np.full(20, hi[0]), rng.uniform(lo[1], hi[1], 20)]),  # last column
+            rng.uniform(lo - 0.1 * span, hi + 0.1 * span, size=(200, 2)),  # partly outside
+        ]
+    )
+    scale = np.abs(table).max(axis=(0, 1))
+    assert_allclose(fast(q) / scale, scipy_rgi(q) / scale, rtol=0, atol=1e-12)
+    uneven = fmap.x.copy()
+    uneven[1] += 0.3 * (uneven[2] - uneven[1])
+    assert _UniformGrid.of(uneven, fmap.y, table) is None  # falls back to scipy's
+
+
 def test_stacks_match_coils_placed_independently(
     coils: CoilSystem, lut_model: LookupTableFieldModel, rng: np.random.Generator
 ) -> None:
