@@ -17,6 +17,10 @@ releases a semaphore; it never blocks and never waits for the writer. Slots are 
 the writer has taken their content (a shared ``taken`` counter). A full ring drops the tick
 and counts it, as the thread recorder's full queue does.
 
+The writer process runs at a lower priority (nice
+:data:`~magrun.recording.WRITER_NICE`, inherited by its threads), so that on a busy machine
+the scheduler runs the control loop first.
+
 The writer ignores SIGINT and SIGTERM (the loop's process handles those and closes the
 recording). If the loop's process dies (SIGKILL, a crash), the writer sees its control pipe
 close, writes what it has, and finishes both files with status ``"interrupted"``: nothing is
@@ -42,7 +46,13 @@ from typing import Any
 import numpy as np
 
 from magrun.loop import Tick
-from magrun.recording import Recorder, RecorderStats, RecordingSetup, TrialRecorder
+from magrun.recording import (
+    Recorder,
+    RecorderStats,
+    RecordingSetup,
+    TrialRecorder,
+    lower_priority,
+)
 
 #: bytes of each slot kept for the pickled tick (a tick without its frame is ~2 KB)
 META_BYTES = 16 << 10
@@ -218,6 +228,7 @@ def _writer_main(
     """The writer process: ring entries → a thread-mode TrialRecorder, until a stop entry."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the loop's process closes the recording
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    lower_priority()  # this process's threads (the writer's, Rerun's) inherit it
     counters = SharedMemory(name=counters_name)
     taken = np.ndarray((1,), np.int64, counters.buf)
     try:

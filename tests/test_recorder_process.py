@@ -6,17 +6,19 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from test_recording import _rrd_rows
 
 from magrun.control.base import ControllerStatus
 from magrun.loop import Tick
 from magrun.recorder_process import ProcessRecorder
-from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.recording import WRITER_NICE, RecordingSetup, TrialRecorder
 from magrun.tracking.camera import Camera
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")
@@ -115,6 +117,30 @@ for tick in _ticks(40, [np.full((64, 64), 7, np.uint8)]):
 print(rec._proc.pid, flush=True)
 os.kill(os.getpid(), 9)
 """
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice is Linux's")
+def test_writers_run_below_the_loops_priority(tmp_path: Path) -> None:
+    """The process writer runs at nice WRITER_NICE, the thread writer's thread too, and the
+    loop's own thread keeps its priority."""
+    loop_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    rec = ProcessRecorder(tmp_path / "p", _setup()).start()
+    try:
+        assert os.getpriority(os.PRIO_PROCESS, rec._proc.pid) == max(WRITER_NICE, loop_nice)
+    finally:
+        rec.close()
+    thread_rec = TrialRecorder(tmp_path / "t", _setup()).start()
+    try:
+        assert thread_rec._thread is not None
+        tid = thread_rec._thread.native_id
+        assert tid is not None
+        deadline = time.monotonic() + 5.0
+        while os.getpriority(os.PRIO_PROCESS, tid) != max(WRITER_NICE, loop_nice):
+            assert time.monotonic() < deadline, "the writer thread kept the loop's priority"
+            time.sleep(0.01)
+    finally:
+        thread_rec.close()
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == loop_nice
 
 
 def test_writer_finishes_the_files_when_the_loop_process_is_killed(tmp_path: Path) -> None:
