@@ -166,9 +166,10 @@ def bench_recorder(
     width: int = 1280,
     height: int = 1024,
     out_dir: str | None = None,
-    compression: str = "lz4",
+    compression: str = "none",
     ticks: int = 1000,
     writers: tuple[str, ...] = WRITERS,
+    pinned: bool = True,
 ) -> dict[str, Any]:
     """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
     of logging to the control tick, for each writer (``thread``: the writer on a thread of
@@ -183,8 +184,14 @@ def bench_recorder(
     Phase 2 (tick cost): the same control tick — one proposed-NMPC solve on a fixed problem —
     runs ``ticks`` times at ``fps`` without logging and ``ticks`` times logging each tick
     (frames as in phase 1) to each writer, the conditions alternating in blocks of a tenth so
-    that a change in the machine's load meets all of them; the figures are the p50 and p99
-    tick times of each and the p99 difference to the bare ticks.
+    that a change in the machine's load meets all of them, each block starting once every
+    writer has written its backlog; the figures are the p50 and p99 tick times of each and
+    their difference to the bare ticks'.
+
+    With ``pinned`` (and two cores or more) each writer is also measured as ``magrun run
+    --rig hardware`` places it (:mod:`magrun.realtime`): ``<writer>_pinned``, the writer on
+    the cores after the first and the loop's thread on the first, against bare ticks with the
+    loop pinned the same way (``bare_pinned``).
     """
     import tempfile
     from pathlib import Path
@@ -192,13 +199,13 @@ def bench_recorder(
     from magrun.control.base import ControllerStatus
     from magrun.control.methods import make_controller
     from magrun.loop import Tick
+    from magrun.realtime import cpu_split, pin_thread
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder
 
     frames = _camera_frames(width, height, 8)
     names = tuple(f"coil{i}" for i in range(8))
     status = ControllerStatus(0.0015, 1, True, "", "0")
-    recorders = {"thread": TrialRecorder, "process": ProcessRecorder}
 
     def tick(k: int) -> Tick:
         pose = np.array([1e-3 * math.sin(k / 50), 1e-3 * math.cos(k / 50), k / 1000])
@@ -208,7 +215,14 @@ def bench_recorder(
             compute_time=0.0015, frame=frames[k % len(frames)],
         )  # fmt: skip
 
-    def recorder(writer: str, base: Path) -> Any:
+    cores = cpu_split()
+    variants = list(writers)
+    if pinned and cores is not None:
+        variants += [f"{w}_pinned" for w in writers]
+
+    def recorder(variant: str, base: Path) -> Any:
+        writer, _, pin = variant.partition("_")
+        cpus = cores[1] if pin and cores is not None else None
         setup = RecordingSetup(
             trial={"protocol": "bench", "method": "none"},
             channel_names=names,
@@ -217,8 +231,14 @@ def bench_recorder(
             compression=compression,
         )
         if writer == "thread":
-            return TrialRecorder(base, setup, queue_size=512).start()
-        return recorders[writer](base, setup, slots=64).start()
+            return TrialRecorder(base, setup, queue_size=512, writer_cpus=cpus).start()
+        return ProcessRecorder(
+            base, setup, slots=64, frame_bytes=width * height, writer_cpus=cpus
+        ).start()
+
+    def loop_cpus(variant: str) -> frozenset[int] | None:
+        """The loop's CPUs in a variant's blocks (the pinned ones: the first core)."""
+        return cores[0] if variant.endswith("_pinned") and cores is not None else None
 
     out: dict[str, Any] = {
         "benchmark": "recorder",
@@ -232,8 +252,9 @@ def bench_recorder(
     with tempfile.TemporaryDirectory(dir=out_dir, prefix="magrun-bench-") as tmp:
         # phase 1: sustained throughput
         n = int(seconds * fps)
-        for writer in writers:
+        for writer in variants:
             rec = recorder(writer, Path(tmp) / f"throughput-{writer}")
+            before = pin_thread(loop_cpus(writer))
             start = time.perf_counter()
             for k in range(n):
                 delay = start + k / fps - time.perf_counter()
@@ -243,6 +264,7 @@ def bench_recorder(
             produced = time.perf_counter() - start
             stats = rec.close()
             finished = time.perf_counter() - start
+            pin_thread(before)
             size = rec.mcap_path.stat().st_size
             out["throughput"][writer] = {
                 "frames_offered": n,
@@ -282,28 +304,37 @@ def bench_recorder(
 
         timed(None, min(50, ticks), 0)  # warm up
         block = max(ticks // 10, 1)
-        times: dict[str, list[float]] = {"bare": [], **{w: [] for w in writers}}
-        live = {w: recorder(w, Path(tmp) / f"tick_cost-{w}") for w in writers}
+        bares = ["bare"] + (["bare_pinned"] if len(variants) > len(writers) else [])
+        times: dict[str, list[float]] = {v: [] for v in bares + variants}
+        live = {w: recorder(w, Path(tmp) / f"tick_cost-{w}") for w in variants}
         while len(times["bare"]) < ticks:
             n = min(block, ticks - len(times["bare"]))
-            times["bare"] += timed(None, n, 0)
-            for w, rec in live.items():
-                times[w] += timed(rec.log, n, len(times[w]))
-                time.sleep(0.05)  # let the writer drain before the next block
-        bare = np.array(times["bare"])
-        cost: dict[str, Any] = {
-            "ticks": len(bare),
-            "rate_hz": fps,
-            "p50_bare_ms": _ms(bare, 50),
-            "p99_bare_ms": _ms(bare, 99),
-        }
+            for v in times:
+                before = pin_thread(loop_cpus(v))
+                rec = live.get(v)
+                times[v] += timed(rec.log if rec is not None else None, n, len(times[v]))
+                pin_thread(before)
+                # the next block starts once every writer is idle: a writer still busy
+                # with this block's frames would load the next condition's ticks
+                idle_by = time.monotonic() + 30.0
+                while any(r.backlog() > 0 for r in live.values()):
+                    if time.monotonic() > idle_by:
+                        raise RuntimeError("a recorder did not write its backlog in 30 s")
+                    time.sleep(0.01)
+                time.sleep(0.05)
+        bare = {v: np.array(times[v]) for v in bares}
+        cost: dict[str, Any] = {"ticks": len(bare["bare"]), "rate_hz": fps}
+        for v, t in bare.items():
+            cost[f"p50_{v}_ms"], cost[f"p99_{v}_ms"] = _ms(t, 50), _ms(t, 99)
         for w, rec in live.items():
             stats = rec.close()
             logged = np.array(times[w])
+            reference = bare["bare_pinned" if w.endswith("_pinned") else "bare"]
             cost[w] = {
                 "p50_logging_ms": _ms(logged, 50),
                 "p99_logging_ms": _ms(logged, 99),
-                "p99_added_ms": _ms(logged, 99) - _ms(bare, 99),
+                "p50_added_ms": _ms(logged, 50) - _ms(reference, 50),
+                "p99_added_ms": _ms(logged, 99) - _ms(reference, 99),
                 "ticks_dropped": stats.dropped_ticks,
             }
         out["tick_cost"] = cost

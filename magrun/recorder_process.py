@@ -18,7 +18,7 @@ the writer has taken their content (a shared ``taken`` counter). A full ring dro
 and counts it, as the thread recorder's full queue does.
 
 The writer process runs at a lower priority (nice
-:data:`~magrun.recording.WRITER_NICE`, inherited by its threads), so that on a busy machine
+:data:`~magrun.realtime.WRITER_NICE`, inherited by its threads), so that on a busy machine
 the scheduler runs the control loop first.
 
 The writer ignores SIGINT and SIGTERM (the loop's process handles those and closes the
@@ -34,9 +34,11 @@ milliseconds.
 from __future__ import annotations
 
 import contextlib
+import mmap
 import multiprocessing as mp
 import pickle
 import signal
+from collections.abc import Iterable
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from multiprocessing.shared_memory import SharedMemory
@@ -46,13 +48,8 @@ from typing import Any
 import numpy as np
 
 from magrun.loop import Tick
-from magrun.recording import (
-    Recorder,
-    RecorderStats,
-    RecordingSetup,
-    TrialRecorder,
-    lower_priority,
-)
+from magrun.realtime import lower_priority, pin_thread
+from magrun.recording import Recorder, RecorderStats, RecordingSetup, TrialRecorder
 
 #: bytes of each slot kept for the pickled tick (a tick without its frame is ~2 KB)
 META_BYTES = 16 << 10
@@ -74,6 +71,12 @@ class ProcessRecorder(Recorder):
     wait_when_full : bool
         Wait for a free slot instead of dropping the tick (a simulation, where no clock
         runs; never on a rig).
+    frame_bytes : int, optional
+        The camera frames' size in bytes, if known: the ring is then allocated in
+        :meth:`start` rather than on the first frame (its first ``log`` otherwise takes
+        ~20–40 ms with 1280 × 1024 frames; a larger frame is dropped and counted).
+    writer_cpus : iterable of int, optional
+        Restrict the writer process (all its threads) to these CPUs (:mod:`magrun.realtime`).
     """
 
     def __init__(
@@ -84,8 +87,11 @@ class ProcessRecorder(Recorder):
         flush_s: float = 1.0,
         start_timeout: float = 60.0,
         wait_when_full: bool = False,
+        frame_bytes: int | None = None,
+        writer_cpus: Iterable[int] | None = None,
     ) -> None:
-        super().__init__(base, setup)
+        super().__init__(base, setup, writer_cpus)
+        self.frame_bytes = frame_bytes
         self.slots = slots
         self.flush_s = flush_s
         self.start_timeout = start_timeout
@@ -100,14 +106,23 @@ class ProcessRecorder(Recorder):
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload(["magrun.recording"])
         self._counters = SharedMemory(create=True, size=16)
-        self._taken = np.ndarray((1,), np.int64, self._counters.buf)  # written by the writer
-        self._taken[0] = 0
+        # [entries taken from the ring, ticks written]: written by the writer
+        self._taken = np.ndarray((2,), np.int64, self._counters.buf)
+        self._taken[:] = 0
         self._head = 0  # entries written; only this process changes it
         self._items = ctx.Semaphore(0)
         self._conn, child = ctx.Pipe()
         self._proc = ctx.Process(
             target=_writer_main,
-            args=(child, self._items, self._counters.name, self.base, self.setup, self.flush_s),
+            args=(
+                child,
+                self._items,
+                self._counters.name,
+                self.base,
+                self.setup,
+                self.flush_s,
+                self.writer_cpus,
+            ),
             name=f"recorder {self.base.name}",
             daemon=True,
         )
@@ -116,10 +131,15 @@ class ProcessRecorder(Recorder):
         if not self._conn.poll(self.start_timeout):
             self._abandon()
             raise RuntimeError(f"the recorder process for {self.base} did not start")
-        reply = self._conn.recv()
+        try:
+            reply = self._conn.recv()
+        except EOFError:  # it died before it could answer
+            reply = f"the process exited (code {self._proc.exitcode})"
         if reply != "ready":
             self._abandon()
             raise RuntimeError(f"the recorder process could not open {self.base}: {reply}")
+        if self.frame_bytes is not None:
+            self._open_ring(self.frame_bytes)
         return self
 
     def log(self, tick: Tick) -> None:
@@ -143,6 +163,13 @@ class ProcessRecorder(Recorder):
             self.stats.dropped_ticks += 1
             return
         self._put(meta, frame)
+
+    def backlog(self) -> int:
+        """Ticks in the ring or in the writer's hands, not yet written (as of the writer's
+        last report, at most ~20 ms old)."""
+        if self._proc is None:
+            return 0
+        return self._head - int(self._taken[1])
 
     def close(self, status: str = "ok", reason: str = "") -> RecorderStats:
         """Let the writer write what is in the ring and finish both files; its statistics.
@@ -183,6 +210,10 @@ class ProcessRecorder(Recorder):
         self._frame_bytes = frame_bytes
         self._slot_bytes = _HEADER + META_BYTES + frame_bytes
         self._ring = SharedMemory(create=True, size=self.slots * self._slot_bytes)
+        # touch every page now: otherwise each slot's first use page-faults its ~300 pages
+        # (a 1.3 MB frame) during a control tick, which measured +1.2 ms at the p99
+        assert self._ring.buf is not None
+        np.frombuffer(self._ring.buf, np.uint8)[:: mmap.PAGESIZE] = 0
         self._conn.send(("ring", self._ring.name, self.slots, frame_bytes))
 
     def _put(self, meta: bytes, frame: np.ndarray | None, stop_entry: bool = False) -> None:
@@ -209,7 +240,7 @@ class ProcessRecorder(Recorder):
                 self._proc.kill()
         self._proc = None
         self._conn.close()
-        self._taken = np.zeros(1, np.int64)  # drop the view before closing its memory
+        self._taken = np.zeros(2, np.int64)  # drop the view before closing its memory
         for shm in (self._ring, self._counters):
             if shm is not None:
                 shm.close()
@@ -224,13 +255,15 @@ def _writer_main(
     base: Path,
     setup: RecordingSetup,
     flush_s: float,
+    writer_cpus: frozenset[int] | None,
 ) -> None:
     """The writer process: ring entries → a thread-mode TrialRecorder, until a stop entry."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the loop's process closes the recording
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    lower_priority()  # this process's threads (the writer's, Rerun's) inherit it
+    lower_priority()  # this process's threads (the writer's, Rerun's) inherit both
+    pin_thread(writer_cpus)
     counters = SharedMemory(name=counters_name)
-    taken = np.ndarray((1,), np.int64, counters.buf)
+    taken = np.ndarray((2,), np.int64, counters.buf)
     try:
         rec = TrialRecorder(base, setup, queue_size=1 << 30, flush_s=flush_s).start()
     except Exception as exc:
@@ -251,7 +284,8 @@ def _writer_main(
             return False
 
     while True:
-        if not items.acquire(timeout=0.25):
+        taken[1] = rec.stats.ticks_written  # for backlog(): at most one wait (20 ms) old
+        if not items.acquire(timeout=0.02):
             if not control():
                 break  # the loop's process died: finish what we have
             continue

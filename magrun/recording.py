@@ -32,12 +32,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import platform
 import queue
 import sys
 import threading
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -55,6 +55,7 @@ from mcap_protobuf.schema import register_schema
 from numpy.typing import NDArray
 
 from magrun.loop import Tick
+from magrun.realtime import lower_priority, pin_thread
 
 FloatArray = NDArray[np.float64]
 
@@ -82,10 +83,6 @@ STREAM_COLORS = {
 }
 #: the interpreter's GIL switch interval while a recorder runs, s (see TrialRecorder.start)
 SWITCH_INTERVAL_S = 5e-4
-#: the writer's nice value (Linux: its thread, or its process): under CPU contention the
-#: scheduler gives the control loop (nice 0) ~10× the writer's share and preempts the writer
-#: when a tick wakes up; an idle core still runs the writer at full speed
-WRITER_NICE = 10
 #: pose streams also drawn over the camera image
 CAMERA_STREAMS = ("actual", "predicted", "measured")
 #: pose streams drawn as whole paths over the views at the end of a trial
@@ -228,9 +225,13 @@ class Recorder(ABC):
     (:class:`TrialRecorder` on a thread, :class:`~magrun.recorder_process.ProcessRecorder`
     in a child process): ``start``, ``log``, ``close``, ``stats`` and the two paths."""
 
-    def __init__(self, base: str | Path, setup: RecordingSetup) -> None:
+    def __init__(
+        self, base: str | Path, setup: RecordingSetup, writer_cpus: Iterable[int] | None = None
+    ) -> None:
         self.base = Path(base)
         self.setup = setup
+        #: the CPUs the writer is restricted to (None: any; :mod:`magrun.realtime`)
+        self.writer_cpus = frozenset(writer_cpus) if writer_cpus is not None else None
         self.stats = RecorderStats()
         self.status = "ok"
 
@@ -254,6 +255,10 @@ class Recorder(ABC):
     def close(self, status: str = "ok", reason: str = "") -> RecorderStats:
         """Write what is pending and the ``recorder`` metadata; finish both files."""
 
+    @abstractmethod
+    def backlog(self) -> int:
+        """Ticks handed over and not yet written (0: the writer is idle)."""
+
     def __enter__(self) -> Self:
         return self.start()
 
@@ -261,21 +266,10 @@ class Recorder(ABC):
         self.close("ok" if exc_type is None else "failed")
 
 
-def lower_priority(nice: int = WRITER_NICE) -> None:
-    """Raise the calling thread's nice value to at least ``nice`` (Linux; a no-op where the
-    platform has no per-thread priority). Threads it starts afterwards inherit it."""
-    try:
-        tid = threading.get_native_id()
-        current = os.getpriority(os.PRIO_PROCESS, tid)
-        if current < nice:
-            os.setpriority(os.PRIO_PROCESS, tid, nice)
-    except (AttributeError, OSError):  # not Linux, or not permitted: keep the priority
-        pass
-
-
 class TrialRecorder(Recorder):
     """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread (at nice
-    :data:`WRITER_NICE` on Linux: the control loop's thread comes first for the CPU).
+    :data:`~magrun.realtime.WRITER_NICE` on Linux: the control loop's thread comes first for
+    the CPU; restricted to ``writer_cpus`` if given).
 
     Use as a context manager, or call :meth:`start` and :meth:`close`::
 
@@ -284,9 +278,14 @@ class TrialRecorder(Recorder):
     """
 
     def __init__(
-        self, base: str | Path, setup: RecordingSetup, queue_size: int = 256, flush_s: float = 1.0
+        self,
+        base: str | Path,
+        setup: RecordingSetup,
+        queue_size: int = 256,
+        flush_s: float = 1.0,
+        writer_cpus: Iterable[int] | None = None,
     ) -> None:
-        super().__init__(base, setup)
+        super().__init__(base, setup, writer_cpus)
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._flush_ns = int(flush_s * 1e9)
         self._thread: threading.Thread | None = None
@@ -301,6 +300,10 @@ class TrialRecorder(Recorder):
             self._queue.put_nowait(tick)
         except queue.Full:
             self.stats.dropped_ticks += 1
+
+    def backlog(self) -> int:
+        s = self.stats
+        return 0 if s.error else s.ticks_logged - s.dropped_ticks - s.ticks_written
 
     # ---- lifecycle ---------------------------------------------------------------------
 
@@ -320,7 +323,11 @@ class TrialRecorder(Recorder):
                 "half_width_m": json.dumps(self.setup.workspace_half_width),
             },
         )
-        self._rerun_start()
+        before = pin_thread(self.writer_cpus)  # Rerun's threads, started here, inherit it
+        try:
+            self._rerun_start()
+        finally:
+            pin_thread(before)
         self._last_flush = 0
         # The writer thread's Python work holds the GIL in slices of the switch interval
         # (5 ms by default): a control tick waiting for it would be late by up to that much.
@@ -363,6 +370,7 @@ class TrialRecorder(Recorder):
 
     def _run(self) -> None:
         lower_priority()
+        pin_thread(self.writer_cpus)
         while True:
             item = self._queue.get()
             if item is _STOP:

@@ -46,6 +46,7 @@ import numpy as np
 from magrun import interrupt
 from magrun.atomic import write_text
 from magrun.protocol import Protocol, Trial
+from magrun.realtime import cpu_split, pin_thread
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
@@ -178,6 +179,16 @@ def _torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+@contextmanager
+def _pinned(cpus: frozenset[int] | None) -> Iterator[None]:
+    """The calling thread restricted to ``cpus`` for the block (None: unchanged)."""
+    before = pin_thread(cpus)
+    try:
+        yield
+    finally:
+        pin_thread(before)
+
+
 def execute_trial(
     trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
 ) -> dict[str, Any]:
@@ -254,11 +265,18 @@ def execute_trial(
             recording_id=f"{trial.relpath}@{trial.seed}",
         )
         writer = protocol.recording.writer
+        cam = the_rig.camera
+        # on a rig the loop gets a core of its own, the writer the others (magrun.realtime)
+        cores = None if sim else cpu_split()
+        writer_cpus = cores[1] if cores else None
         recorder = (
-            ProcessRecorder(base, setup, wait_when_full=sim)
+            ProcessRecorder(
+                base, setup, wait_when_full=sim, writer_cpus=writer_cpus,
+                frame_bytes=cam.shape[0] * cam.shape[1] * 3 if cam is not None else None,
+            )
             if writer == "process" or (writer == "auto" and not sim)
-            else TrialRecorder(base, setup)
-        ).start()
+            else TrialRecorder(base, setup, writer_cpus=writer_cpus)
+        ).start()  # fmt: skip
         tick_progress = (
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )
@@ -273,7 +291,7 @@ def execute_trial(
             ),
             workspace_half_width=scene.half_width,
         )  # fmt: skip
-        with _torch_threads(1):
+        with _torch_threads(1), _pinned(cores[0] if cores else None):
             log = run_trial(
                 controller, the_rig, scene.reference, feedback=mimic,
                 horizon=protocol.controller.horizon,

@@ -17,8 +17,9 @@ from test_recording import _rrd_rows
 
 from magrun.control.base import ControllerStatus
 from magrun.loop import Tick
+from magrun.realtime import WRITER_NICE, cpu_split, pin_thread
 from magrun.recorder_process import ProcessRecorder
-from magrun.recording import WRITER_NICE, RecordingSetup, TrialRecorder
+from magrun.recording import RecordingSetup, TrialRecorder
 from magrun.tracking.camera import Camera
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")
@@ -86,9 +87,14 @@ def test_full_ring_and_oversized_frames_are_dropped_and_counted(tmp_path: Path) 
     try:
         for tick in ticks[:7]:
             rec.log(tick)
+        assert rec.backlog() == 4  # the ring's four, none written
     finally:
         os.kill(rec._proc.pid, signal.SIGCONT)
     rec.log(_ticks(1, [np.zeros((33, 32), np.uint8)])[0])  # larger than the ring's frames
+    deadline = time.monotonic() + 10.0
+    while rec.backlog() > 0:  # the writer catches up, and says so
+        assert time.monotonic() < deadline, f"backlog stuck at {rec.backlog()}"
+        time.sleep(0.01)
     stats = rec.close()
     assert (stats.ticks_logged, stats.dropped_ticks, stats.ticks_written) == (8, 4, 4)
     assert _metadata(rec.mcap_path)["recorder"]["ticks_written"] == "4"
@@ -141,6 +147,45 @@ def test_writers_run_below_the_loops_priority(tmp_path: Path) -> None:
     finally:
         thread_rec.close()
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == loop_nice
+
+
+@pytest.mark.skipif(
+    not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+    reason="needs CPU affinity and two cores",
+)
+def test_writers_keep_to_their_cpus_and_the_loop_to_its_own(tmp_path: Path) -> None:
+    """cpu_split gives the loop one core and the writers the rest: the writer process (its
+    every thread) and the writer thread run there, the loop's thread is pinned and restored."""
+    split = cpu_split()
+    assert split is not None
+    loop_cpus, writer_cpus = split
+    allowed = frozenset(os.sched_getaffinity(0))
+    assert loop_cpus | writer_cpus == allowed
+    assert not loop_cpus & writer_cpus
+
+    rec = ProcessRecorder(tmp_path / "p", _setup(), writer_cpus=writer_cpus).start()
+    try:
+        pid = rec._proc.pid
+        for tid in os.listdir(f"/proc/{pid}/task"):  # the writer's and Rerun's threads
+            assert os.sched_getaffinity(int(tid)) == writer_cpus
+    finally:
+        rec.close()
+    thread_rec = TrialRecorder(tmp_path / "t", _setup(), writer_cpus=writer_cpus).start()
+    try:
+        assert thread_rec._thread is not None
+        assert thread_rec._thread.native_id is not None
+        tid = thread_rec._thread.native_id
+        deadline = time.monotonic() + 5.0
+        while os.sched_getaffinity(tid) != writer_cpus:
+            assert time.monotonic() < deadline, "the writer thread was not pinned"
+            time.sleep(0.01)
+    finally:
+        thread_rec.close()
+    before = pin_thread(loop_cpus)
+    assert before == allowed
+    assert os.sched_getaffinity(0) == loop_cpus
+    pin_thread(before)
+    assert os.sched_getaffinity(0) == allowed
 
 
 def test_writer_finishes_the_files_when_the_loop_process_is_killed(tmp_path: Path) -> None:
