@@ -6,7 +6,9 @@ and then, which shows in the tick's p99. Two remedies, both per thread, both no-
 platform lacks them:
 
 - :func:`lower_priority`: the writer runs at nice :data:`WRITER_NICE`, so that under
-  contention the scheduler serves the loop first (every writer does this);
+  contention the scheduler serves the loop first (every writer on a clock does this; in
+  simulation the loop waits for a full writer instead, and a low-priority writer would only
+  slow the campaign down);
 - :func:`cpu_split` and :func:`pin_thread`: the loop on one core, the writer on the others
   (``magrun run --rig hardware`` does this when the machine has two cores or more; the
   simulated campaign does not, its workers share every core).

@@ -17,7 +17,7 @@ releases a semaphore; it never blocks and never waits for the writer. Slots are 
 the writer has taken their content (a shared ``taken`` counter). A full ring drops the tick
 and counts it, as the thread recorder's full queue does.
 
-The writer process runs at a lower priority (nice
+On a clock (not ``wait_when_full``) the writer process runs at a lower priority (nice
 :data:`~magrun.realtime.WRITER_NICE`, inherited by its threads), so that on a busy machine
 the scheduler runs the control loop first.
 
@@ -70,7 +70,8 @@ class ProcessRecorder(Recorder):
         Seconds to wait for the writer to open its files.
     wait_when_full : bool
         Wait for a free slot instead of dropping the tick (a simulation, where no clock
-        runs; never on a rig).
+        runs; never on a rig). The writer then keeps the loop's priority (otherwise nice
+        :data:`~magrun.realtime.WRITER_NICE`).
     frame_bytes : int, optional
         The camera frames' size in bytes, if known: the ring is then allocated in
         :meth:`start` rather than on the first frame (its first ``log`` otherwise takes
@@ -122,6 +123,7 @@ class ProcessRecorder(Recorder):
                 self.setup,
                 self.flush_s,
                 self.writer_cpus,
+                self.wait_when_full,
             ),
             name=f"recorder {self.base.name}",
             daemon=True,
@@ -256,16 +258,20 @@ def _writer_main(
     setup: RecordingSetup,
     flush_s: float,
     writer_cpus: frozenset[int] | None,
+    loop_waits: bool,
 ) -> None:
     """The writer process: ring entries → a thread-mode TrialRecorder, until a stop entry."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the loop's process closes the recording
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    lower_priority()  # this process's threads (the writer's, Rerun's) inherit both
+    if not loop_waits:  # on a clock: below the loop (this process's threads inherit it)
+        lower_priority()
     pin_thread(writer_cpus)
     counters = SharedMemory(name=counters_name)
     taken = np.ndarray((2,), np.int64, counters.buf)
     try:
-        rec = TrialRecorder(base, setup, queue_size=1 << 30, flush_s=flush_s).start()
+        rec = TrialRecorder(
+            base, setup, queue_size=1 << 30, flush_s=flush_s, wait_when_full=loop_waits
+        ).start()
     except Exception as exc:
         conn.send(f"{type(exc).__name__}: {exc}")
         return

@@ -267,9 +267,14 @@ class Recorder(ABC):
 
 
 class TrialRecorder(Recorder):
-    """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread (at nice
-    :data:`~magrun.realtime.WRITER_NICE` on Linux: the control loop's thread comes first for
-    the CPU; restricted to ``writer_cpus`` if given).
+    """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread.
+
+    On a clock (a rig, a benchmark; the default) a full queue drops the tick and counts it,
+    and the writer thread runs at nice :data:`~magrun.realtime.WRITER_NICE` (Linux) so that
+    the control loop comes first for the CPU. With ``wait_when_full`` (simulation, where no
+    clock runs) the loop waits for room instead, and the writer keeps the loop's priority
+    (a loop without a clock would otherwise wait on a writer it starves).
+    ``writer_cpus`` restricts the writer thread (and Rerun's threads) to those CPUs.
 
     Use as a context manager, or call :meth:`start` and :meth:`close`::
 
@@ -284,8 +289,10 @@ class TrialRecorder(Recorder):
         queue_size: int = 256,
         flush_s: float = 1.0,
         writer_cpus: Iterable[int] | None = None,
+        wait_when_full: bool = False,
     ) -> None:
         super().__init__(base, setup, writer_cpus)
+        self.wait_when_full = wait_when_full
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._flush_ns = int(flush_s * 1e9)
         self._thread: threading.Thread | None = None
@@ -294,10 +301,11 @@ class TrialRecorder(Recorder):
     # ---- loop side ---------------------------------------------------------------------
 
     def log(self, tick: Tick) -> None:
-        """Queue a tick for writing; never blocks (a full queue drops and counts it)."""
+        """Queue a tick for writing; never blocks (a full queue drops and counts it), unless
+        ``wait_when_full``."""
         self.stats.ticks_logged += 1
         try:
-            self._queue.put_nowait(tick)
+            self._queue.put(tick, block=self.wait_when_full)
         except queue.Full:
             self.stats.dropped_ticks += 1
 
@@ -369,7 +377,8 @@ class TrialRecorder(Recorder):
     # ---- writer thread -----------------------------------------------------------------
 
     def _run(self) -> None:
-        lower_priority()
+        if not self.wait_when_full:
+            lower_priority()
         pin_thread(self.writer_cpus)
         while True:
             item = self._queue.get()

@@ -275,7 +275,7 @@ def execute_trial(
                 frame_bytes=cam.shape[0] * cam.shape[1] * 3 if cam is not None else None,
             )
             if writer == "process" or (writer == "auto" and not sim)
-            else TrialRecorder(base, setup, writer_cpus=writer_cpus)
+            else TrialRecorder(base, setup, writer_cpus=writer_cpus, wait_when_full=sim)
         ).start()  # fmt: skip
         tick_progress = (
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None

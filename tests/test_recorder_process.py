@@ -149,6 +149,34 @@ def test_writers_run_below_the_loops_priority(tmp_path: Path) -> None:
     assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == loop_nice
 
 
+def test_simulation_writers_wait_instead_of_dropping_and_keep_the_loops_priority(
+    tmp_path: Path,
+) -> None:
+    """wait_when_full (no clock): a 2-tick queue and a 4-slot ring take 40 ticks logged as
+    fast as possible without a drop, and neither writer is put below the loop."""
+    loop_nice = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    frame = np.zeros((32, 32), np.uint8)
+    thread_rec = TrialRecorder(
+        tmp_path / "t", _setup(image_format="raw"), queue_size=2, wait_when_full=True
+    ).start()
+    assert thread_rec._thread is not None
+    tid = thread_rec._thread.native_id
+    assert tid is not None
+    for tick in _ticks(40, [frame]):
+        thread_rec.log(tick)
+    assert os.getpriority(os.PRIO_PROCESS, tid) == loop_nice
+    stats = thread_rec.close()
+    assert (stats.ticks_logged, stats.dropped_ticks, stats.ticks_written) == (40, 0, 40)
+    rec = ProcessRecorder(
+        tmp_path / "p", _setup(image_format="raw"), slots=4, wait_when_full=True
+    ).start()
+    for tick in _ticks(40, [frame]):
+        rec.log(tick)
+    assert os.getpriority(os.PRIO_PROCESS, rec._proc.pid) == loop_nice
+    stats = rec.close()
+    assert (stats.ticks_logged, stats.dropped_ticks, stats.ticks_written) == (40, 0, 40)
+
+
 @pytest.mark.skipif(
     not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
     reason="needs CPU affinity and two cores",

@@ -110,42 +110,6 @@ def test_plant_moves_as_with_a_clamped_ramp_and_a_grid_read_per_substep(
     assert_allclose(driven, reference_driven, rtol=0, atol=1e-12)
 
 
-def _generic_held_steps(self: SimRig, state, n: int, h: float):
-    """What SimRig._held_steps inlines: discrete_step on the held field, then contact."""
-    from magrun.robot import MATH_OPS, discrete_step
-
-    for _ in range(n):
-        state = discrete_step(state, self._held, self.robot, h, substeps=1, ops=MATH_OPS)
-        state = self._contact_step(state)
-    return state
-
-
-@pytest.mark.parametrize("walls", [False, True])
-def test_inlined_held_steps_are_bit_identical_to_the_generic_kernel(
-    coils, channel_grid, magnet_robot, monkeypatch: pytest.MonkeyPatch, walls: bool
-) -> None:
-    """The plant's fast path computes exactly (==, not to rounding) what discrete_step does,
-    in open space and pressed against walls."""
-
-    def run() -> np.ndarray:
-        box = Walls.box(0.004) if walls else None
-        rig = SimRig(coils, channel_grid, magnet_robot, walls=box, seed=2, compiled=False)
-        rig.reset([0.001, -0.002, 0.7])
-        out = []
-        for k in range(60):
-            rig.apply(np.roll(np.array([14.0, -6, 9, 0, -12, 6, 0, 3]), k // 12) * (k % 4))
-            rig.advance(0.011)
-            rig.advance(0.029)
-            out.append(rig.state.copy())
-        return np.array(out)
-
-    fast = run()
-    monkeypatch.setattr(SimRig, "_held_steps", _generic_held_steps)
-    generic = run()
-    assert np.array_equal(fast, generic)
-    assert np.ptp(fast[:, :2], axis=0).max() > 1e-3  # it moved
-
-
 @pytest.mark.parametrize("setting", ["open", "box", "spine"])
 def test_compiled_plant_follows_the_python_reference(
     coils, channel_grid, magnet_robot, setting: str

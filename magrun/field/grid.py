@@ -6,7 +6,8 @@ rotates the reference ("FEA") maps into the workspace frame once, storing for ev
 and channel ``(Bx, By, ∂Bx/∂x, ∂Bx/∂y, ∂By/∂x, ∂By/∂y)`` per ampere, and
 :meth:`ChannelGrid.field` reads one point with a 2×2 gather: a few microseconds. The plant
 reads through :class:`GridCells`, which keeps each visited cell's corners (and, for held
-currents, their contraction with the currents: :class:`HeldField`).
+currents, their contraction with the currents: :class:`HeldField`); the compiled plant
+(:mod:`magrun.rigs.kernel`) reads :attr:`ChannelGrid.table` itself.
 
     >>> from magrun.field.grid import ChannelGrid
     >>> grid = ChannelGrid.load()

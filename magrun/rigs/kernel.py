@@ -1,13 +1,14 @@
 """The simulated plant's sub-step loop compiled with Numba: the rig's inner loop in machine code.
 
-A campaign integrates ~14 million 1 ms plant sub-steps. In Python each costs 10 µs (currents
-held) to 35 µs (currents ramping: a small matrix product per step); compiled, about 0.2 µs.
-:func:`free_substeps` runs :func:`magrun.robot.exponential_substep` on the field read
-bilinearly from the :class:`~magrun.field.grid.ChannelGrid`'s table, the same formulas in the
-same order as :meth:`magrun.rigs.sim.SimRig._held_steps` (the Python reference, kept and
-tested against this to 1e-12). It stops after any sub-step that leaves the wall broad
-phase's clear disc, so that the contact resolution (Python, :mod:`magrun.scene`) runs exactly
-where the reference runs it, and then resumes.
+A campaign integrates ~14 million 1 ms plant sub-steps; in Python each costs 10–35 µs,
+compiled about 0.2 µs. :func:`free_substeps` runs :func:`magrun.robot.exponential_substep`
+(one field read per sub-step, as the Python plant's :func:`magrun.robot.discrete_step` calls
+do) on the field read bilinearly from the :class:`~magrun.field.grid.ChannelGrid`'s table,
+written out in scalar form. It stops after any sub-step that leaves the wall broad phase's
+clear disc, so that the broad phase (Python, :class:`~magrun.rigs.sim.SimRig`) and
+:func:`resolve_capsule` (:meth:`magrun.scene.Walls.resolve_capsule` compiled) run exactly
+where the Python plant runs them, and then resumes. ``SimRig(compiled=False)``, the Python
+plant, is the reference both are tested against (1e-12).
 
 Numba caches the machine code on disk: under ``<magrun cache>/numba`` (see
 :func:`magrun.control.compiled.cache_dir`) unless ``NUMBA_CACHE_DIR`` is set. The first

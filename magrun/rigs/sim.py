@@ -216,7 +216,9 @@ class SimRig(Rig):
         if n > len(ramp):  # the amplifiers have reached the target (the usual case): hold it
             if self._held is None:  # the target's field, kept until apply() changes it
                 self._held = self._cells.held(self.target * self.coil_gains)
-            state = self._held_steps(state, n - len(ramp), h)
+            for _ in range(n - len(ramp)):
+                state = discrete_step(state, self._held, self.robot, h, substeps=1, ops=MATH_OPS)
+                state = self._contact_step(state)
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
 
@@ -261,67 +263,6 @@ class SimRig(Rig):
             if touched:
                 self._contact = True
         return state
-
-    def _held_steps(self, state: tuple[float, ...], n: int, h: float) -> tuple[float, ...]:
-        """``n`` sub-steps of ``h`` with the held field: :func:`magrun.robot.discrete_step`
-        (one sub-step each, on the :class:`HeldField`) with the calls inlined, the same
-        arithmetic in the same order (bit-identical, tests/test_sim.py), ~2× faster. The
-        plant spends most of its time here."""
-        held = self._held
-        assert held is not None
-        r = self.robot
-        cos, sin = math.cos, math.sin
-        moment = r.moment
-        d_a, d_b, d_r = r.drag_parallel, r.drag_perpendicular, r.drag_rotation
-        tau_a, tau_b, tau_r = r.mass / d_a, r.mass / d_b, r.inertia / d_r
-        h2 = h / 2
-        # _relax's decay factors: the full step, and the half step's rotation (the half
-        # step serves only to find the mid-step orientation)
-        ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
-        ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
-        k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
-        grid = held.cells.grid
-        x0, y0, step = grid.x0, grid.y0, grid.step
-        i_max, j_max = grid.table.shape[0] - 2, grid.table.shape[1] - 2
-        floor, hypot = math.floor, math.hypot
-        here: tuple[int, int] | None = None
-        v: list[float] = []
-        x, y, th, vx, vy, om = state
-        for _ in range(n):
-            # held(x, y): GridCells.locate, HeldField.cell and _blend, inlined
-            fx_, fy_ = (x - x0) / step, (y - y0) / step
-            i, j = min(max(floor(fx_), 0), i_max), min(max(floor(fy_), 0), j_max)
-            if here != (i, j):
-                here, v = (i, j), held.cell(i, j)
-            tx, ty = fx_ - i, fy_ - j
-            sx, sy = 1 - tx, 1 - ty
-            bx = sx * (sy * v[0] + ty * v[6]) + tx * (sy * v[12] + ty * v[18])
-            by = sx * (sy * v[1] + ty * v[7]) + tx * (sy * v[13] + ty * v[19])
-            g00 = sx * (sy * v[2] + ty * v[8]) + tx * (sy * v[14] + ty * v[20])
-            g01 = sx * (sy * v[3] + ty * v[9]) + tx * (sy * v[15] + ty * v[21])
-            g10 = sx * (sy * v[4] + ty * v[10]) + tx * (sy * v[16] + ty * v[22])
-            g11 = sx * (sy * v[5] + ty * v[11]) + tx * (sy * v[17] + ty * v[23])
-            c, s = cos(th), sin(th)
-            ua, ub = c * vx + s * vy, -s * vx + c * vy
-            # the start wrench, a half step to the mid-step orientation
-            mx, my = moment * c, moment * s
-            tq = mx * by - my * bx
-            ur = tq / d_r
-            th_half = th + (ur * h2 + (om - ur) * k2r)
-            # the wrench at that orientation drives the full step from the start
-            mx, my = moment * cos(th_half), moment * sin(th_half)
-            fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
-            fa, fb = c * fx + s * fy, -s * fx + c * fy
-            ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
-            ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * h + (ua - ua_ss) * ka
-            ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * h + (ub - ub_ss) * kb
-            om1, dth = ur + (om - ur) * er, ur * h + (om - ur) * kr
-            x, y, th = x + c * sa - s * sb, y + s * sa + c * sb, th + dth
-            vx, vy, om = c * ua1 - s * ub1, s * ua1 + c * ub1, om1
-            cx, cy, slack = self._clear[:3]
-            if hypot(x - cx, y - cy) >= slack:  # _walls_in_reach's first test, inlined
-                x, y, th, vx, vy, om = self._contact_step((x, y, th, vx, vy, om))
-        return (x, y, th, vx, vy, om)
 
     def _ramp(self, n: int, h: float) -> FloatArray:
         """Driven currents after each of the next ``n`` sub-steps of ``h`` s while any channel
