@@ -213,7 +213,7 @@ class ProcessRecorder(Recorder):
         self._slot_bytes = _HEADER + META_BYTES + frame_bytes
         self._ring = SharedMemory(create=True, size=self.slots * self._slot_bytes)
         # touch every page now: otherwise each slot's first use page-faults its ~300 pages
-        # (a 1.3 MB frame) during a control tick, which measured +1.2 ms at the p99
+        # (a 1.3 MB frame) inside a control tick
         assert self._ring.buf is not None
         np.frombuffer(self._ring.buf, np.uint8)[:: mmap.PAGESIZE] = 0
         self._conn.send(("ring", self._ring.name, self.slots, frame_bytes))
