@@ -207,18 +207,17 @@ class SimRig(Rig):
             return
         state = tuple(self.state)
         field: Callable[[float, float], tuple[list[float], Any]]
-        for k in range(len(ramp)):  # the step uses the current at its midpoint
-            drive = 0.5 * (self.driven + ramp[k]) * self.coil_gains
-            self.driven = ramp[k]
-            field = partial(self._cells.read, drive)
+        for k in range(n):
+            if k < len(ramp):  # the step uses the current at its midpoint
+                drive = 0.5 * (self.driven + ramp[k]) * self.coil_gains
+                self.driven = ramp[k]
+                field = partial(self._cells.read, drive)
+            else:  # the amplifiers have reached the target (the usual case): hold it
+                if self._held is None:  # the target's field, kept until apply() changes it
+                    self._held = self._cells.held(self.target * self.coil_gains)
+                field = self._held
             state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
             state = self._contact_step(state)
-        if n > len(ramp):  # the amplifiers have reached the target (the usual case): hold it
-            if self._held is None:  # the target's field, kept until apply() changes it
-                self._held = self._cells.held(self.target * self.coil_gains)
-            for _ in range(n - len(ramp)):
-                state = discrete_step(state, self._held, self.robot, h, substeps=1, ops=MATH_OPS)
-                state = self._contact_step(state)
         self.state = np.array(state, dtype=np.float64)
         self.t += duration
 
