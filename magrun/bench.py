@@ -8,6 +8,7 @@ correctness, these functions measure.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import platform
@@ -190,8 +191,9 @@ def bench_recorder(
 
     With ``pinned`` (and two cores or more) each writer is also measured as ``magrun run
     --rig hardware`` places it (:mod:`magrun.realtime`): ``<writer>_pinned``, the writer on
-    the cores after the first and the loop's thread on the first, against bare ticks with the
-    loop pinned the same way (``bare_pinned``).
+    the cores after the first and the loop's thread on the first, at real-time priority where
+    the system permits it, against bare ticks with the loop placed the same way
+    (``bare_pinned``); ``loop_scheduling`` says what the pinned loop got.
     """
     import tempfile
     from pathlib import Path
@@ -199,7 +201,7 @@ def bench_recorder(
     from magrun.control.base import ControllerStatus
     from magrun.control.methods import make_controller
     from magrun.loop import Tick
-    from magrun.realtime import cpu_split, pin_thread
+    from magrun.realtime import cpu_split, describe_scheduling, loop_placement
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder
 
@@ -236,9 +238,11 @@ def bench_recorder(
             base, setup, slots=64, frame_bytes=width * height, writer_cpus=cpus
         ).start()
 
-    def loop_cpus(variant: str) -> frozenset[int] | None:
-        """The loop's CPUs in a variant's blocks (the pinned ones: the first core)."""
-        return cores[0] if variant.endswith("_pinned") and cores is not None else None
+    def placed(variant: str) -> Any:
+        """The loop as a variant's blocks run it (the pinned ones: as on a rig)."""
+        if variant.endswith("_pinned") and cores is not None:
+            return loop_placement(cores[0])
+        return contextlib.nullcontext()
 
     out: dict[str, Any] = {
         "benchmark": "recorder",
@@ -254,17 +258,16 @@ def bench_recorder(
         n = int(seconds * fps)
         for writer in variants:
             rec = recorder(writer, Path(tmp) / f"throughput-{writer}")
-            before = pin_thread(loop_cpus(writer))
-            start = time.perf_counter()
-            for k in range(n):
-                delay = start + k / fps - time.perf_counter()
-                if delay > 0:
-                    time.sleep(delay)
-                rec.log(tick(k))
-            produced = time.perf_counter() - start
-            stats = rec.close()
-            finished = time.perf_counter() - start
-            pin_thread(before)
+            with placed(writer):
+                start = time.perf_counter()
+                for k in range(n):
+                    delay = start + k / fps - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                    rec.log(tick(k))
+                produced = time.perf_counter() - start
+                stats = rec.close()
+                finished = time.perf_counter() - start
             size = rec.mcap_path.stat().st_size
             out["throughput"][writer] = {
                 "frames_offered": n,
@@ -310,10 +313,11 @@ def bench_recorder(
         while len(times["bare"]) < ticks:
             n = min(block, ticks - len(times["bare"]))
             for v in times:
-                before = pin_thread(loop_cpus(v))
                 rec = live.get(v)
-                times[v] += timed(rec.log if rec is not None else None, n, len(times[v]))
-                pin_thread(before)
+                with placed(v):
+                    times[v] += timed(rec.log if rec is not None else None, n, len(times[v]))
+                    if v == "bare_pinned":
+                        out["loop_scheduling"] = describe_scheduling()
                 # the next block starts once every writer is idle: a writer still busy
                 # with this block's frames would load the next condition's ticks
                 idle_by = time.monotonic() + 30.0

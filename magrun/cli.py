@@ -1094,7 +1094,8 @@ def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> N
 @click.option("--ticks", default=1000, show_default=True, help="Control ticks per tick-cost phase.")
 @click.option(
     "--pinned/--no-pinned", default=True, show_default=True,
-    help="Also measure each writer as on the rig: loop on the first core, writer on the others.",
+    help="Also measure each writer as on the rig: the loop on the first core at real-time"
+    " priority (where permitted), the writer on the others.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
 def bench_recorder(
@@ -1124,7 +1125,10 @@ def bench_recorder(
     c = out["tick_cost"]
     click.echo(f"tick cost: p99 {c['p99_bare_ms']:.2f} ms bare")
     if "p99_bare_pinned_ms" in c:
-        click.echo(f"tick cost: p99 {c['p99_bare_pinned_ms']:.2f} ms bare, loop pinned")
+        click.echo(
+            f"tick cost: p99 {c['p99_bare_pinned_ms']:.2f} ms bare, loop placed as on a rig"
+            f" ({out['loop_scheduling']})"
+        )
     for writer, t in out["throughput"].items():
         w = c[writer]
         click.echo(

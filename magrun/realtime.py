@@ -11,7 +11,13 @@ platform lacks them:
   slow the campaign down);
 - :func:`cpu_split` and :func:`pin_thread`: the loop on one core, the writer on the others
   (``magrun run --rig hardware`` does this when the machine has two cores or more; the
-  simulated campaign does not, its workers share every core).
+  simulated campaign does not, its workers share every core);
+- :func:`realtime_priority`: the loop's thread under ``SCHED_FIFO`` (priority
+  :data:`LOOP_RTPRIO`), so that nothing of normal priority on its core — the kernel's
+  write-back threads flushing the recording, other programs — preempts a tick (``magrun run
+  --rig hardware`` asks for it; Linux grants it to root, to a process with ``CAP_SYS_NICE``, or
+  to a user with an ``rtprio`` limit in /etc/security/limits.conf; otherwise the loop keeps
+  the normal policy and the trial's manifest entry says so).
 
 ``magrun bench recorder`` measures what each costs the tick (BENCHMARKS.md, "Recorder").
 """
@@ -20,12 +26,18 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 
 #: the writer's nice value: under CPU contention the scheduler gives the control loop (nice 0)
 #: ~10× the writer's share and preempts the writer when a tick wakes up; an idle core still
 #: runs the writer at full speed. ``MAGRUN_WRITER_NICE`` overrides it (0: the loop's own)
 WRITER_NICE = int(os.environ.get("MAGRUN_WRITER_NICE", "10"))
+
+
+#: the control loop's ``SCHED_FIFO`` priority on a rig (1–99); ``MAGRUN_LOOP_RTPRIO`` overrides
+#: it (0: the loop keeps the normal policy)
+LOOP_RTPRIO = int(os.environ.get("MAGRUN_LOOP_RTPRIO", "50"))
 
 
 def lower_priority(nice: int | None = None) -> None:
@@ -63,3 +75,57 @@ def pin_thread(cpus: Iterable[int] | None) -> frozenset[int] | None:
     except (AttributeError, OSError):
         return None
     return before
+
+
+#: (policy, priority) of a thread, as :func:`realtime_priority` returns and restores it
+Scheduling = tuple[int, int]
+
+
+def realtime_priority(priority: int | None = None) -> Scheduling | None:
+    """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (default
+    :data:`LOOP_RTPRIO`). Threads and processes it starts afterwards get the normal policy
+    (``SCHED_RESET_ON_FORK``): a helper that never blocks must not starve the loop on its core.
+    Returns the previous scheduling, to restore with :func:`restore_scheduling`; None when
+    nothing changed (priority 0, not Linux, or not permitted)."""
+    priority = LOOP_RTPRIO if priority is None else priority
+    if priority <= 0:
+        return None
+    try:
+        before = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+        policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+    except (AttributeError, OSError):
+        return None
+    return before
+
+
+def restore_scheduling(before: Scheduling | None) -> None:
+    """Undo :func:`realtime_priority` (None: nothing to undo)."""
+    if before is not None:
+        os.sched_setscheduler(0, before[0], os.sched_param(before[1]))
+
+
+def describe_scheduling() -> str:
+    """The calling thread's policy, priority and CPUs, e.g. ``"SCHED_FIFO 50, CPUs 0"``."""
+    try:
+        policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+        priority = os.sched_getparam(0).sched_priority
+        cpus = ",".join(str(c) for c in sorted(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return "unknown"
+    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR"}
+    return f"{names.get(policy, str(policy))} {priority}, CPUs {cpus}"
+
+
+@contextmanager
+def loop_placement(cpus: Iterable[int] | None, priority: int | None = None) -> Iterator[str]:
+    """The calling thread, for the block, on ``cpus`` (None: unchanged) at real-time priority
+    ``priority`` (:func:`realtime_priority`; default :data:`LOOP_RTPRIO`, 0 none); yields
+    :func:`describe_scheduling`'s account of what it got. Restored on leaving."""
+    cpus_before = pin_thread(cpus)
+    sched_before = realtime_priority(priority)
+    try:
+        yield describe_scheduling()
+    finally:
+        restore_scheduling(sched_before)
+        pin_thread(cpus_before)

@@ -36,7 +36,7 @@ import shutil
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +46,7 @@ import numpy as np
 from magrun import interrupt
 from magrun.atomic import write_text
 from magrun.protocol import Protocol, Trial
-from magrun.realtime import cpu_split, pin_thread
+from magrun.realtime import cpu_split, loop_placement
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
@@ -179,16 +179,6 @@ def _torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-@contextmanager
-def _pinned(cpus: frozenset[int] | None) -> Iterator[None]:
-    """The calling thread restricted to ``cpus`` for the block (None: unchanged)."""
-    before = pin_thread(cpus)
-    try:
-        yield
-    finally:
-        pin_thread(before)
-
-
 def execute_trial(
     trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
 ) -> dict[str, Any]:
@@ -266,7 +256,8 @@ def execute_trial(
         )
         writer = protocol.recording.writer
         cam = the_rig.camera
-        # on a rig the loop gets a core of its own, the writer the others (magrun.realtime)
+        # on a rig the loop gets a core of its own at real-time priority (where permitted),
+        # the writer the others (magrun.realtime); in simulation nothing is placed
         cores = None if sim else cpu_split()
         writer_cpus = cores[1] if cores else None
         recorder = (
@@ -291,7 +282,8 @@ def execute_trial(
             ),
             workspace_half_width=scene.half_width,
         )  # fmt: skip
-        with _torch_threads(1), _pinned(cores[0] if cores else None):
+        placement = loop_placement(cores[0] if cores else None) if not sim else nullcontext("")
+        with _torch_threads(1), placement as scheduling:
             log = run_trial(
                 controller, the_rig, scene.reference, feedback=mimic,
                 horizon=protocol.controller.horizon,
@@ -325,6 +317,7 @@ def execute_trial(
         )
         if not sim:
             entry["hardware"] = the_rig.report()
+            entry["loop_scheduling"] = scheduling
     except Exception as exc:
         entry.update(status="failed", error=f"{type(exc).__name__}: {exc}")
         entry["traceback"] = traceback.format_exc(limit=8)

@@ -184,6 +184,7 @@ def test_protocol_runs_on_the_emulated_rig_in_real_time(tmp_path: Path) -> None:
     for e in manifest["trials"]:
         assert e["status"] == "ok", e["error"]
         hw = e["hardware"]
+        assert e["loop_scheduling"].startswith(("SCHED_FIFO", "SCHED_OTHER"))
         assert hw["dropped_frames"] == pytest.approx(e["ticks"] / 5, abs=2)
         assert 0 < hw["latency_median_ms"] < 1e3 / 25.5
         assert e["wall_s"] >= 0.95  # paced: a 1 s trial takes at least its second

@@ -17,7 +17,14 @@ from test_recording import _rrd_rows
 
 from magrun.control.base import ControllerStatus
 from magrun.loop import Tick
-from magrun.realtime import WRITER_NICE, cpu_split, pin_thread
+from magrun.realtime import (
+    LOOP_RTPRIO,
+    WRITER_NICE,
+    cpu_split,
+    describe_scheduling,
+    loop_placement,
+    pin_thread,
+)
 from magrun.recorder_process import ProcessRecorder
 from magrun.recording import RecordingSetup, TrialRecorder
 from magrun.tracking.camera import Camera
@@ -214,6 +221,53 @@ def test_writers_keep_to_their_cpus_and_the_loop_to_its_own(tmp_path: Path) -> N
     assert os.sched_getaffinity(0) == loop_cpus
     pin_thread(before)
     assert os.sched_getaffinity(0) == allowed
+
+
+def _fifo_permitted() -> bool:
+    """Whether this process may use SCHED_FIFO (asked on a thread of its own)."""
+    result: list[bool] = []
+
+    def ask() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            result.append(True)
+        except OSError:
+            result.append(False)
+
+    t = threading.Thread(target=ask)
+    t.start()
+    t.join()
+    return result[0]
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling API")
+def test_loop_placement_pins_raises_and_restores() -> None:
+    """Inside the block the thread is on the given CPUs and, where permitted, under SCHED_FIFO
+    at LOOP_RTPRIO (the account it yields says which); on leaving both are as before.
+    Priority 0 leaves the policy alone."""
+    allowed = os.sched_getaffinity(0)
+    first = frozenset(sorted(allowed)[:1])
+    policy = os.sched_getscheduler(0)
+    with loop_placement(first) as got:
+        assert os.sched_getaffinity(0) == first
+        if _fifo_permitted():
+            assert os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
+            assert os.sched_getparam(0).sched_priority == LOOP_RTPRIO
+            assert got == f"SCHED_FIFO {LOOP_RTPRIO}, CPUs {min(first)}"
+            seen: list[int] = []  # a thread it starts gets the normal policy
+            helper = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+            helper.start()
+            helper.join()
+            assert seen == [os.SCHED_OTHER]
+        else:
+            assert os.sched_getscheduler(0) == policy
+            assert got.startswith("SCHED_OTHER 0")
+    assert os.sched_getaffinity(0) == allowed
+    assert os.sched_getscheduler(0) == policy
+    with loop_placement(None, priority=0) as got:
+        assert os.sched_getscheduler(0) == policy
+        assert os.sched_getaffinity(0) == allowed
+    assert got == describe_scheduling()
 
 
 def test_writer_finishes_the_files_when_the_loop_process_is_killed(tmp_path: Path) -> None:
