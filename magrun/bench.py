@@ -160,6 +160,10 @@ def _camera_frames(width: int, height: int, n: int, seed: int = 0) -> list[np.nd
 #: the recorder's writers `bench recorder` compares
 WRITERS = ("thread", "process")
 
+#: ticks each writer buffers in `bench recorder` (the thread's queue, the process's ring):
+#: the same for both, and the recorders' default
+QUEUE = 256
+
 
 def bench_recorder(
     seconds: float = 5.0,
@@ -233,9 +237,9 @@ def bench_recorder(
             compression=compression,
         )
         if writer == "thread":
-            return TrialRecorder(base, setup, queue_size=512, writer_cpus=cpus).start()
+            return TrialRecorder(base, setup, queue_size=QUEUE, writer_cpus=cpus).start()
         return ProcessRecorder(
-            base, setup, slots=64, frame_bytes=width * height, writer_cpus=cpus
+            base, setup, slots=QUEUE, frame_bytes=width * height, writer_cpus=cpus
         ).start()
 
     def placed(variant: str) -> Any:

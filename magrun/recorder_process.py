@@ -64,8 +64,8 @@ class ProcessRecorder(Recorder):
     base, setup, flush_s
         As :class:`~magrun.recording.TrialRecorder`'s.
     slots : int
-        Ticks the ring holds (default 64: 0.3 s at 200 fps; 84 MB of shared memory with
-        1280 × 1024 mono8 frames).
+        Ticks the ring holds (default 256, as the thread writer's queue: 1.3 s at 200 fps;
+        336 MB of shared memory with 1280 × 1024 mono8 frames, touched when it opens).
     start_timeout : float
         Seconds to wait for the writer to open its files.
     wait_when_full : bool
@@ -84,7 +84,7 @@ class ProcessRecorder(Recorder):
         self,
         base: str | Path,
         setup: RecordingSetup,
-        slots: int = 64,
+        slots: int = 256,
         flush_s: float = 1.0,
         start_timeout: float = 60.0,
         wait_when_full: bool = False,
