@@ -849,6 +849,15 @@ def run(
         f"{len(manifest['trials'])} trials in {wall:.0f} s -> {out / protocol.name}"
         + (f"; {dropped} ticks dropped by the recorder" if dropped else "")
     )
+    normal = [
+        e for e in manifest["trials"] if e.get("loop_scheduling", "").startswith("SCHED_OTHER")
+    ]
+    if normal:
+        click.echo(
+            f"note: the control loop ran without real-time priority in {len(normal)} trial(s)"
+            ' (not permitted: see the README\'s "Hardware rig", Pacing)',
+            err=True,
+        )
     stopped = interrupt.requested()
     if stopped is not None:
         left = sum(e["status"] != "ok" for e in manifest["trials"])

@@ -197,6 +197,31 @@ def test_protocol_runs_on_the_emulated_rig_in_real_time(tmp_path: Path) -> None:
         assert np.all(latencies > 0)
 
 
+def test_run_says_when_the_loop_ran_without_real_time_priority(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With real-time priority switched off (as when the system refuses it) every trial's
+    entry says SCHED_OTHER and `magrun run` says so on stderr; the trials still run."""
+    from click.testing import CliRunner
+
+    from magrun import realtime
+    from magrun.cli import cli
+
+    monkeypatch.setattr(realtime, "LOOP_RTPRIO", 0)
+    proc, url = _serve(tmp_path)
+    try:
+        out = tmp_path / "out"
+        args = ["run", str(TINY), "--out", str(out), "--rig", "hardware", "--driver", url]
+        result = CliRunner().invoke(cli, args)
+    finally:
+        _stop(proc)
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((out / "tiny" / "manifest.json").read_text())
+    assert all(e["loop_scheduling"].startswith("SCHED_OTHER") for e in manifest["trials"])
+    n = len(manifest["trials"])
+    assert f"without real-time priority in {n} trial(s)" in result.stderr
+
+
 def test_a_driver_that_disconnects_mid_run_fails_the_trial_cleanly(tmp_path: Path) -> None:
     """The emulator dies at tick 10: the trial fails naming the driver, its recording is
     finished (indexed, status failed), and the run goes on to report it."""

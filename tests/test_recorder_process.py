@@ -250,7 +250,7 @@ def test_loop_placement_pins_raises_and_restores() -> None:
     policy = os.sched_getscheduler(0)
     with loop_placement(first) as got:
         assert os.sched_getaffinity(0) == first
-        if _fifo_permitted():
+        if LOOP_RTPRIO > 0 and _fifo_permitted():
             assert os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO
             assert os.sched_getparam(0).sched_priority == LOOP_RTPRIO
             assert got == f"SCHED_FIFO {LOOP_RTPRIO}, CPUs {min(first)}"
