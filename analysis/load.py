@@ -366,6 +366,7 @@ def load(
                 trial=entry.get("trial"),
                 status=entry.get("status", "ok"),
                 error=entry.get("error", ""),
+                warnings="; ".join(entry.get("warnings") or []),
             )
             if row["status"] != "ok" and not mcap_path.is_file():
                 rows.append(row)

@@ -9,7 +9,8 @@ results with their units. Definitions:
 - clearance of the robot's body from a boundary: the body is a capsule (a segment of length
   ``L − D`` along the heading, radius ``D/2``); clearance is the distance from that segment to
   the boundary polyline minus ``D/2``, negative when the body overlaps the boundary.
-- contact: clearance at or below :data:`CONTACT_MM` from any boundary.
+- contact: clearance at or below :data:`CONTACT_MM`; ``contact_time_s`` with any boundary,
+  ``contact_time_s[name]`` per boundary.
 """
 
 from __future__ import annotations
@@ -158,6 +159,7 @@ def trial_metrics(
             out[f"min_clearance_mm[{name}]"] = _q(c, 0)
             out[f"p5_clearance_mm[{name}]"] = _q(c, CLEARANCE_PERCENTILE)
             touching |= c <= contact_mm
+            out[f"contact_time_s[{name}]"] = time_in(c <= contact_mm, t)
             if name == rec.critical:
                 out["min_clearance_mm"] = _q(c, 0)
                 out["p5_clearance_mm"] = _q(c, CLEARANCE_PERCENTILE)

@@ -330,6 +330,16 @@ def report_markdown(
     bad = data.trials[data.trials["status"] != "ok"]
     lines += ["## Trials not completed (failed, unreadable or pending)", ""]
     lines.append(_md_table(bad[["protocol", "method", "trial", "status", "error", "path"]]))
+    if "warnings" in data.trials:
+        warned = data.trials[data.trials["warnings"].fillna("").astype(str) != ""]
+        lines += [
+            "## Trials with warnings",
+            "",
+            "Completed, but with sustained saturation, failed solves, a lost estimate or "
+            "contact with the critical boundary (the run's manifest has the figures).",
+            "",
+        ]
+        lines.append(_md_table(warned[["protocol", "method", "trial", "warnings", "path"]]))
     if figures and "zernike" in figures:
         lines += ["## Zernike field model", "", "![zernike](zernike.png)", ""]
     return "\n".join(lines) + "\n"

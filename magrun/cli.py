@@ -747,6 +747,8 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
             lines.append(f"STOPPED {e['path']}: {e.get('error', '')}")
         elif e["status"] != "ok":
             lines.append(f"FAILED {e['path']}: {e.get('error', '')}")
+        for warning in e.get("warnings") or []:
+            lines.append(f"WARNING {e['path']}: {warning}")
     return lines
 
 

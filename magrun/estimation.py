@@ -89,6 +89,11 @@ class KalmanPoseFilter(Estimator):
     def covariance(self) -> FloatArray:
         return np.asarray(self.kf.P, dtype=np.float64).copy()
 
+    def constrain(self, pose: FloatArray) -> None:
+        # projecting the estimate onto the free space (a state constraint): the mean moves,
+        # the covariance is kept (a conservative choice: the projection only removes states)
+        self.kf.x = np.asarray(pose, dtype=np.float64).reshape(3, 1).copy()
+
 
 class MeasurementOrPrediction(Estimator):
     """Baselines 1, 3, 4: the measurement when one arrives, else the controller's prediction.
@@ -111,6 +116,9 @@ class MeasurementOrPrediction(Estimator):
         elif prediction is not None and self.use_prediction:
             self._last = np.asarray(prediction, dtype=np.float64).copy()
         return self._last.copy()
+
+    def constrain(self, pose: FloatArray) -> None:
+        self._last = np.asarray(pose, dtype=np.float64).copy()
 
 
 class HoldLastMeasurement(MeasurementOrPrediction):

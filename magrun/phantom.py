@@ -153,7 +153,7 @@ def segment_distances(p0: FloatArray, p1: FloatArray, segs: FloatArray) -> Float
         one_a, one_b = p0[None, :], p1[None, :]
         d = np.minimum(d, _point_to_segments(a, one_a, one_b))
         d = np.minimum(d, _point_to_segments(b, one_a, one_b))
-        d = np.where(_crosses(p0, p1, a, b), 0.0, d)  # proper crossings touch
+        d = np.where(segments_cross(p0, p1, a, b), 0.0, d)  # proper crossings touch
     return d
 
 
@@ -165,7 +165,11 @@ def _point_to_segments(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArra
     return np.hypot(*np.moveaxis(p - (a + u[..., None] * ab), -1, 0))
 
 
-def _crosses(p0: FloatArray, p1: FloatArray, a: FloatArray, b: FloatArray) -> NDArray[np.bool_]:
+def segments_cross(
+    p0: FloatArray, p1: FloatArray, a: FloatArray, b: FloatArray
+) -> NDArray[np.bool_]:
+    """Whether segment ``p0``–``p1`` properly crosses each segment ``a``–``b`` (broadcast)."""
+
     def orient(p: FloatArray, q: FloatArray, r: FloatArray) -> FloatArray:
         return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
                        - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))  # fmt: skip

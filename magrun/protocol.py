@@ -117,9 +117,10 @@ class OpenWorkspace(_Strict):
 
 
 class PhantomWorkspace(_Strict):
-    """A phantom whose boundaries are a polygon file (:mod:`magrun.phantom`)."""
+    """A phantom whose boundaries are a polygon file (:mod:`magrun.phantom`); ``phantom`` and
+    ``spine_phantom`` (the paper's) are the same kind."""
 
-    kind: Literal["spine_phantom"]
+    kind: Literal["phantom", "spine_phantom"]
     phantom: str = Field(
         description="Phantom polygon file (YAML), relative to the protocol file's folder."
     )
@@ -177,8 +178,20 @@ class KalmanSettings(_Strict):
         0.1, description="The camera tracker's own noise, mm (the floor of the above)."
     )
     measurement_sigma_deg: PositiveFloat = 3.0
-    process_sigma_mm: PositiveFloat = 0.3
-    process_sigma_deg: PositiveFloat = 2.0
+    process_sigma_mm: PositiveFloat | Literal["robot"] = Field(
+        0.3,
+        description=(
+            "Process noise per control tick and axis, mm; 'robot': the robot's measured "
+            "prediction error (robots.yaml prediction_sigma_mm)."
+        ),
+    )
+    process_sigma_deg: PositiveFloat | Literal["robot"] = Field(
+        2.0,
+        description=(
+            "Process noise of the heading per control tick, degrees; 'robot': robots.yaml "
+            "prediction_sigma_deg."
+        ),
+    )
 
 
 class ControllerSettings(_Strict):
@@ -281,7 +294,9 @@ class QuickSettings(_Strict):
 
     methods: Annotated[list[str], Field(min_length=1)] | None = None
     sweep: Sweep | None = None
-    duration_s: PositiveFloat = 10.0
+    duration_s: PositiveFloat | None = Field(
+        10.0, description="Trial length, s; null: the whole trajectory (as a full run)."
+    )
 
     @field_validator("methods")
     @classmethod
@@ -337,7 +352,7 @@ class Protocol(_Strict):
     def _path_needs_phantom(cls, traj: SCurve | OutAndBack, info: ValidationInfo) -> Any:
         ws = info.data.get("workspace")
         phantom_path = isinstance(traj, OutAndBack) and traj.path == "phantom"
-        if phantom_path and ws is not None and ws.kind != "spine_phantom":
+        if phantom_path and ws is not None and ws.kind == "open":
             raise ValueError("path 'phantom' needs a phantom workspace")
         return traj
 
@@ -357,6 +372,21 @@ class Protocol(_Strict):
         if conditions.tracking_rate_hz is not None:
             _check_rates([conditions.tracking_rate_hz], info)
         return conditions
+
+    @model_validator(mode="after")
+    def _robot_has_measured_noise(self) -> Protocol:
+        k = self.controller.kalman
+        if "robot" in (k.process_sigma_mm, k.process_sigma_deg):
+            from magrun.robot import load_robots
+
+            robot = load_robots().get(self.robot)
+            if robot is not None and robot.prediction_sigma is None:
+                raise ValueError(
+                    "controller.kalman.process_sigma_*: 'robot', but robot "
+                    f"{self.robot!r} has no prediction_sigma_mm / prediction_sigma_deg "
+                    "in robots.yaml; give the numbers instead"
+                )
+        return self
 
     @model_validator(mode="after")
     def _not_too_many_trials(self) -> Protocol:
@@ -416,7 +446,7 @@ class Protocol(_Strict):
 
     def trial_duration(self, quick: bool = False) -> float | None:
         """Seconds per trial, or None for the trajectory's own length plus 1 s."""
-        if quick:
+        if quick and self.quick.duration_s is not None:
             return min(self.quick.duration_s, self.duration_s or math.inf)
         return self.duration_s
 

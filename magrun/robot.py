@@ -76,6 +76,25 @@ class RobotSpec(BaseModel):
     appearance: Literal["two_tone", "capsule"] = Field(
         description="How the camera sees the robot (magrun.tracking.render)."
     )
+    min_aligned_field_mt: float = Field(
+        0.0,
+        ge=0,
+        description=(
+            "Least field along the moment the NMPC keeps (heading-stable fields), mT; "
+            "see robots.yaml for the derivation."
+        ),
+    )
+    prediction_sigma_mm: float | None = Field(
+        None,
+        gt=0,
+        description=(
+            "RMS one-step prediction error of the controller's model, position, mm per tick: "
+            "the Kalman filter's process noise (robots.yaml says how it was measured)."
+        ),
+    )
+    prediction_sigma_deg: float | None = Field(
+        None, gt=0, description="The same for the heading, degrees per tick."
+    )
 
 
 class RobotsFile(RootModel[dict[str, RobotSpec]]):
@@ -96,6 +115,8 @@ class RobotParams:
     drag_perpendicular: float  # N s/m, across the body axis
     drag_rotation: float  # N m s
     appearance: str = "two_tone"  # camera look: "two_tone" (magnet robot) or "capsule"
+    min_aligned_field: float = 0.0  # T, least field along the moment (heading-stable fields)
+    prediction_sigma: tuple[float, float] | None = None  # m, rad: one-step prediction error
 
     @classmethod
     def from_spec(cls, name: str, spec: RobotSpec) -> RobotParams:
@@ -111,6 +132,12 @@ class RobotParams:
             drag_perpendicular=spec.drag_perpendicular_n_s_per_m,
             drag_rotation=spec.drag_rotation_n_m_s,
             appearance=spec.appearance,
+            min_aligned_field=spec.min_aligned_field_mt * 1e-3,
+            prediction_sigma=(
+                (spec.prediction_sigma_mm * 1e-3, math.radians(spec.prediction_sigma_deg))
+                if spec.prediction_sigma_mm is not None and spec.prediction_sigma_deg is not None
+                else None
+            ),
         )
 
     def scaled(self, *, mass: float = 1.0, drag: float = 1.0, moment: float = 1.0) -> RobotParams:
@@ -314,6 +341,13 @@ def casadi_step_function(
 
     nxt = discrete_step(tuple(x[i] for i in range(6)), field, params, dt, substeps, CASADI_OPS)
     return ca.Function(name, [x, I], [ca.vertcat(*nxt)], ["x", "I"], ["x_next"])
+
+
+def heading_rate(params: RobotParams, field_along: float) -> float:
+    """Rate, 1/s, at which a small heading error relaxes in a field whose component along the
+    moment is ``field_along`` (T): the linearised, drag-dominated heading dynamics
+    d_r δθ̇ = −m B_∥ δθ. Negative (the error grows) when the field is against the moment."""
+    return params.moment * field_along / params.drag_rotation
 
 
 def wrap_angle(a: Any) -> Any:

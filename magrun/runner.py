@@ -21,7 +21,9 @@ Output, per the recording contract::
 The manifest is rewritten atomically after every trial: each entry's ``status`` is
 ``pending``, ``ok``, ``stopped`` (the safety layer ended it early: ``error`` says why and
 ``stopped_at_s`` when; its recording is complete up to there), ``interrupted`` or ``failed``
-(with the error), so an interrupted campaign says exactly what it holds.
+(with the error), so an interrupted campaign says exactly what it holds. A trial that ran to
+its end also carries ``warnings`` (:mod:`magrun.health`: sustained saturation, failed
+solves, a lost estimate, contact with the critical boundary), which ``magrun run`` prints.
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ def build_scene(protocol: Protocol) -> Scene:
 
     phantom = None
     ws = protocol.workspace
-    if ws.kind == "spine_phantom":
+    if ws.kind != "open":
         phantom = load_phantom(ws.phantom)
     traj = protocol.trajectory
     if traj.kind == "s_curve":
@@ -97,11 +99,22 @@ def build_scene(protocol: Protocol) -> Scene:
     return Scene(reference, None, {}, None, half_width)
 
 
+def free_space_of(scene: Scene, robot: Any) -> Any:
+    """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
+    and critical boundary, or the workspace square."""
+    from magrun.freespace import FreeSpace
+
+    if scene.boundaries:
+        return FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
+    return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
+
+
 def _control_config(trial: Trial) -> Any:
     from magrun.control.methods import ControlConfig
     from magrun.control.nmpc import NMPCConfig
     from magrun.control.two_layer import LinearMPCConfig
     from magrun.estimation import KalmanConfig
+    from magrun.robot import load_robot
 
     c = trial.protocol.controller
     k = c.kalman
@@ -110,6 +123,15 @@ def _control_config(trial: Trial) -> Any:
     else:
         sigma_mm = k.measurement_sigma_mm
     sigma_deg = max(k.measurement_sigma_deg, float(trial.condition.get("noise_sigma_deg") or 0.0))
+    measured = load_robot(trial.protocol.robot).prediction_sigma  # checked by the protocol
+    process_m = (
+        measured[0] if measured and k.process_sigma_mm == "robot"
+        else float(k.process_sigma_mm) * 1e-3
+    )  # fmt: skip
+    process_rad = (
+        measured[1] if measured and k.process_sigma_deg == "robot"
+        else math.radians(float(k.process_sigma_deg))
+    )  # fmt: skip
     return ControlConfig(
         dt=1.0 / c.rate_hz,
         nmpc=NMPCConfig(horizon=c.horizon),
@@ -117,8 +139,8 @@ def _control_config(trial: Trial) -> Any:
         kalman=KalmanConfig(
             measurement_position=sigma_mm * 1e-3,
             measurement_angle=math.radians(sigma_deg),
-            process_position=k.process_sigma_mm * 1e-3,
-            process_angle=math.radians(k.process_sigma_deg),
+            process_position=process_m,
+            process_angle=process_rad,
         ),
     )
 
@@ -184,6 +206,7 @@ def execute_trial(
 ) -> dict[str, Any]:
     """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
     from magrun.control.methods import make_controller
+    from magrun.health import trial_health
     from magrun.loop import run_trial
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder, software_versions
@@ -205,7 +228,8 @@ def execute_trial(
         scene = build_scene(protocol)
         robot = load_robot(protocol.robot)
         cfg = _control_config(trial)
-        controller = make_controller(trial.method, robot, cfg)
+        free_space = free_space_of(scene, robot)
+        controller = make_controller(trial.method, robot, cfg, free_space=free_space)
         the_rig = _make_rig(
             rig, protocol.robot, scene.walls, trial.seed, protocol.feedback.camera,
             protocol.safety.stall_timeout_ms * 1e-3,
@@ -294,6 +318,11 @@ def execute_trial(
                 stop=lambda: interrupt.requested() is not None, safety=safety,
             )  # fmt: skip
         status = "interrupted" if log.interrupted else "stopped" if log.stop_reason else "ok"
+        frame_ticks = max(1, round(protocol.controller.rate_hz / rate)) if rate < math.inf else 1
+        health, warnings = trial_health(
+            log, controller.dt, controller.max_current, free_space,
+            predict=controller.planner.predict, frame_ticks=frame_ticks,
+        )  # fmt: skip
         reason = log.stop_reason
         if log.interrupted:
             reason = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"
@@ -314,6 +343,8 @@ def execute_trial(
             rms_prediction_orientation_deg=log.rms_prediction_orientation_deg,
             overruns=int(np.count_nonzero(log.compute_time > controller.dt)),
             median_compute_ms=float(np.median(log.compute_time) * 1e3),
+            **health,
+            warnings=warnings,
         )
         if not sim:
             entry["hardware"] = the_rig.report()

@@ -168,7 +168,7 @@ def test_rti_converges_to_the_ipopt_optimum(zernike_model, magnet_robot, kind: s
     state, ref, previous = _problem(kind)
     x0 = state.copy()
     x0[:2] = np.clip(x0[:2], -rti.position_bound, rti.position_bound)
-    args = (x0 / STATE_SCALE, previous / rti.max_current, ref)
+    args = (x0 / STATE_SCALE, previous / rti.max_current, rti.problem.stage_parameters(ref))
     J_rti, J_ipopt = rti.problem.cost(*args, u_rti), ipopt.problem.cost(*args, u_ipopt)
     assert J_rti == pytest.approx(J_ipopt, rel=1e-6)
     if kind == "slew":  # the constraint the test is about is active

@@ -3,9 +3,17 @@
 A :class:`Controller` is an estimator and a planner behind one ``step``::
 
     measured pose or None ─► Estimator(measured, last prediction) ─► pose estimate
-        velocity = (estimate − previous estimate) / Δt
+        estimate ─► FreeSpace.project (the workspace or phantom the protocol declares)
+        velocity = the prediction's (model velocity), or (estimate − previous estimate) / Δt
     [estimate, velocity], reference window, previous currents ─► Planner ─► currents, prediction
         safety: clamp_currents (|I| ≤ I_max, |ΔI| ≤ slew Δt, non-finite → 0) on every tick
+
+Velocity: the planner's own prediction of this tick's velocity (``velocity="model"``, the
+methods with a Kalman filter), or the finite difference of the estimates (``"difference"``,
+the paper's rule, kept by the baselines). With a filter, the estimate jumps by the innovation
+at every fluoroscopy frame, so the difference spikes there (~20 mm/s at 3 Hz and σ = 2 mm);
+the drag-dominated robot's velocity is set by the field within a few ms, and the model's
+prediction of it is what the plan needs.
 
 ``step`` returns a :class:`ControlOutput`: the currents to apply, the estimate it used, its
 prediction of the pose at the next tick, and a :class:`ControllerStatus` (solve time,
@@ -23,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magrun.freespace import FreeSpace
 from magrun.rigs.base import clamp_currents
 from magrun.robot import wrap_angle
 
@@ -85,6 +94,14 @@ class Estimator(ABC):
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
         """The pose estimate (3,) at this tick."""
 
+    @property
+    def covariance(self) -> FloatArray | None:
+        """The estimate's covariance (3×3, SI), where the estimator keeps one."""
+        return None
+
+    def constrain(self, pose: FloatArray) -> None:  # noqa: B027 (optional hook)
+        """The estimate was moved to ``pose`` (into the free space): start from there."""
+
 
 class Planner(ABC):
     """Turns a state estimate and a reference window into currents."""
@@ -111,6 +128,10 @@ class Planner(ABC):
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         """The planner's model of the state one tick after applying ``currents``."""
 
+    def observe_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
+        """The estimate's covariance (3×3) at this tick, before :meth:`plan`; planners that
+        use it (the NMPC's corridor) override this."""
+
 
 class Controller:
     """Estimator + planner + safety clamp: one tick of any control method.
@@ -125,6 +146,10 @@ class Controller:
         Control period, s.
     max_current, max_slew_rate : float
         Limits, A and A/s; every output obeys them.
+    free_space : FreeSpace, optional
+        Where the robot's body can be: every estimate is projected into it.
+    velocity : {"difference", "model"}
+        The velocity handed to the planner (module doc).
     """
 
     def __init__(
@@ -136,10 +161,16 @@ class Controller:
         max_current: float,
         max_slew_rate: float,
         n_channels: int,
+        free_space: FreeSpace | None = None,
+        velocity: str = "difference",
     ) -> None:
+        if velocity not in ("difference", "model"):
+            raise ValueError(f"velocity must be 'difference' or 'model', not {velocity!r}")
         self.name = name
         self.estimator = estimator
         self.planner = planner
+        self.free_space = free_space
+        self.velocity = velocity
         self.dt = dt
         self.max_current = max_current
         self.max_change = max_slew_rate * dt
@@ -153,15 +184,26 @@ class Controller:
         self.planner.reset()
         self._previous_estimate = p
         self._prediction: FloatArray | None = None
+        self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
 
     def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
         """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
         z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
         estimate = self.estimator.update(z, self._prediction)
-        delta = estimate - self._previous_estimate
-        delta[2] = wrap_angle(delta[2])
-        state = np.concatenate([estimate, delta / self.dt])
+        if self.free_space is not None:
+            inside = self.free_space.project(estimate)
+            if not np.array_equal(inside, estimate):
+                estimate = inside
+                self.estimator.constrain(estimate)
+        if self.velocity == "model" and self._predicted_velocity is not None:
+            velocity = self._predicted_velocity
+        else:
+            delta = estimate - self._previous_estimate
+            delta[2] = wrap_angle(delta[2])
+            velocity = delta / self.dt
+        state = np.concatenate([estimate, velocity])
+        self.planner.observe_uncertainty(self.estimator.covariance)
         plan = self.planner.plan(state, reference, self.currents)
         fault = ""
         if not np.all(np.isfinite(plan.currents)):
@@ -174,6 +216,7 @@ class Controller:
             predicted = self.planner.predict(state, currents)
         self._previous_estimate = estimate
         self._prediction = predicted[:3].copy()
+        self._predicted_velocity = predicted[3:6].copy() if predicted.size >= 6 else None
         self.currents = currents
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
 

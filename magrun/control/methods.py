@@ -32,6 +32,7 @@ from magrun.estimation import (
 from magrun.field.lut import LookupTableFieldModel
 from magrun.field.model import PlanarFieldModel
 from magrun.field.zernike import ZernikeFieldModel
+from magrun.freespace import FreeSpace
 from magrun.robot import RobotParams, load_robot
 
 METHODS = ("proposed", "baseline1", "baseline2", "baseline3", "baseline4", "baseline5")
@@ -61,8 +62,14 @@ def make_controller(
     config: ControlConfig | None = None,
     zernike: PlanarFieldModel | None = None,
     lut: PlanarFieldModel | None = None,
+    free_space: FreeSpace | None = None,
 ) -> Controller:
-    """Build one of :data:`METHODS` for ``robot`` (default models: the shipped ones)."""
+    """Build one of :data:`METHODS` for ``robot`` (default models: the shipped ones).
+
+    ``free_space``: the workspace or phantom the robot moves in; every method's estimate is
+    kept inside it, and the NMPC methods plan with its corridor. Default: the coil
+    workspace's square.
+    """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     cfg = config or ControlConfig()
@@ -71,11 +78,15 @@ def make_controller(
         z0, l0 = shipped_models()
         zernike, lut = zernike or z0, lut or l0
     nmpc_cfg = replace(cfg.nmpc, dt=cfg.dt)
+    if free_space is None:
+        free_space = FreeSpace.square(
+            zernike.coils.workspace_half_width, params.length, params.diameter
+        )
     planner: Planner
     estimator: Estimator
     if method in ("proposed", "baseline1", "baseline5"):
         model = lut if method == "baseline5" else zernike
-        planner = NMPC(model, params, nmpc_cfg)
+        planner = NMPC(model, params, nmpc_cfg, free_space)
         estimator = (
             MeasurementOrPrediction() if method == "baseline1" else KalmanPoseFilter(cfg.kalman)
         )
@@ -88,5 +99,7 @@ def make_controller(
         estimator = MeasurementOrPrediction()
     coils = zernike.coils
     return Controller(
-        method, estimator, planner, cfg.dt, coils.max_current, coils.max_slew_rate, coils.n_channels
-    )
+        method, estimator, planner, cfg.dt, coils.max_current, coils.max_slew_rate,
+        coils.n_channels, free_space,
+        velocity="model" if isinstance(estimator, KalmanPoseFilter) else "difference",
+    )  # fmt: skip

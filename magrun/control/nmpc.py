@@ -8,10 +8,40 @@ I₀ … I_{N−1} and the predicted states X₁ … X_N (multiple shooting)::
     s.t.  X_{k+1} = f(X_k, I_k)                 robot.discrete_step with the field model
           |I_k| ≤ I_max,  |I_k − I_{k−1}| ≤ slew Δt   (I_{−1}: the currents applied last tick)
           |x_k|, |y_k| ≤ workspace half-width − margin   (k ≥ 1)
+    soft: (m̂(θ_k) · B(p_k, I_k)) ≥ B_min           heading-stable fields   (k < N)
+    soft: n_j,k · e ≥ c_j,k for both body ends e     corridor                (k ≥ 1)
 
 with e_{p,k} = (x_k, y_k) − (x_k^d, y_k^d) and e_{θ,k} the wrapped angle error, written
 ``atan2(sin Δ, cos Δ)`` (the paper's ``((Δ + π) mod 2π) − π``, smooth for the solver). X₀ is
 the estimate (its position projected into the workspace box).
+
+Heading-stable fields
+---------------------
+The cost alone weighs pose and currents, and a field *against* the robot's moment holds a
+heading as well as one along it: the torque m × B is zero both ways. But the anti-aligned
+equilibrium is unstable: linearised, θ̇ = −(m B_∥ / d_r) δθ with B_∥ = m̂ · B the field along
+the moment, so a tilt grows at m|B|/d_r (6–40 s⁻¹ for the drug-delivery capsule) where an
+aligned field pulls it back at the same rate. Between fluoroscopy frames the plan's model says
+the heading is held while the robot flips. Every plan therefore keeps B_∥ ≥ B_min, the robot's
+``min_aligned_field`` (robots.yaml, where its derivation is written): at B_min the heading
+relaxes by e³ within one frame period of the slowest fluoroscopy rate (3 Hz).
+
+Corridor
+--------
+With a :class:`~magrun.freespace.FreeSpace` (the protocol's phantom), each stage k ≥ 1 has
+two half-planes, from the boundaries nearest to the previous plan's state there (the
+reference on a trial's first tick): the critical boundary's and the nearest other's
+(:meth:`FreeSpace.half_planes`). Both end points of the body's axis must lie on the free side,
+the body's radius plus a margin away: ``corridor_margin`` from the other boundaries, and from
+the critical one ``corridor_margin`` + κ σ_n, where σ_n is the estimate's standard deviation
+along the boundary's normal (the Kalman filter's covariance, κ = ``corridor_sigmas``): a chance
+constraint, tightened by what the controller does not know. A body too long for the channel's
+width at a heading gets no plan that turns it there.
+
+Both are soft: residuals √w · min(0, g) in the least-squares cost (weights ``heading_weight``
+per mT² and ``corridor_weight`` per mm² of violation), so every tick's problem stays feasible
+(a robot pushed into a wall by a disturbance still gets the plan that leads it out), and
+their weights make violations small against the tracking terms.
 
 Units inside the problem are scaled for the solver: positions in mm, velocities in mm/s, and
 currents as fractions of the limit, u = I / I_max. The weights are stated in those units:
@@ -63,7 +93,8 @@ from numpy.typing import NDArray
 from magrun.control.base import ControllerStatus, Plan, Planner
 from magrun.control.compiled import compiled, shared_library
 from magrun.field.model import PlanarFieldModel
-from magrun.robot import RobotParams, casadi_step_function
+from magrun.freespace import INACTIVE, FreeSpace
+from magrun.robot import CASADI_OPS, RobotParams, discrete_step
 
 FloatArray = NDArray[np.float64]
 
@@ -71,6 +102,10 @@ FloatArray = NDArray[np.float64]
 STATE_SCALE = np.array([1e-3, 1e-3, 1.0, 1e-3, 1e-3, 1.0])
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 NX = 6
+#: corridor half-planes per stage (the critical boundary's and the nearest other's)
+N_PLANES = 2
+#: per-stage parameters: the reference pose (3, scaled) and the half-planes (nx, ny, c mm)
+NP = 3 + 3 * N_PLANES
 
 
 @dataclass(frozen=True)
@@ -86,6 +121,17 @@ class NMPCConfig:
     p_position: float = 10.0  # terminal P, per mm²
     q_angle_terminal: float = 100.0  # qθ,N, per rad²
     workspace_margin: float | None = None  # m; None: half the robot's length
+    # heading-stable fields: field along the moment ≥ B_min (T; None: the robot's own)
+    min_aligned_field: float | None = None
+    heading_weight: float = 100.0  # per mT² below B_min; 0 switches the term off
+    # corridor (with a FreeSpace): the body's ends clear of the boundaries
+    corridor_weight: float = 100.0  # per mm² of violation, critical boundary
+    # per mm², the other boundaries; 0: none (contact with them is allowed, and resting on
+    # the far wall is what keeps the body off the critical one when the estimate is poor)
+    corridor_other_weight: float = 0.0
+    corridor_margin: float = 0.2e-3  # m, from every boundary
+    corridor_sigmas: float = 2.0  # κ: the critical margin grows by κ σ of the estimate ...
+    corridor_share: float = 1.0  # ... by at most this share of the channel's free width
     substeps: int = 2
     solver: Literal["rti", "ipopt"] = "rti"
     compile: bool = True  # compile the stage functions / NLP callbacks to C (cached)
@@ -93,6 +139,10 @@ class NMPCConfig:
     iterations: int = 1
     first_tick_iterations: int = 30
     step_tolerance: float = 1e-8  # stop the first tick's iterations below this step (∞-norm)
+    # RTI: extra iterations (at most) when the first currents leave the field along the moment
+    # more than corrective_sag × B_min short of B_min (the linearisation missed the term)
+    corrective_iterations: int = 2
+    corrective_sag: float = 0.1
     hpipm: dict[str, Any] = field(default_factory=dict)
     # IPOPT
     max_iter: int = 100
@@ -108,6 +158,7 @@ class NMPC(Planner):
         field_model: PlanarFieldModel,
         robot: RobotParams,
         config: NMPCConfig | None = None,
+        free_space: FreeSpace | None = None,
     ) -> None:
         self.config = cfg = config or NMPCConfig()
         if cfg.solver not in ("rti", "ipopt"):
@@ -120,9 +171,12 @@ class NMPC(Planner):
         self.max_change = coils.max_slew_rate * cfg.dt
         margin = robot.length / 2 if cfg.workspace_margin is None else cfg.workspace_margin
         self.position_bound = coils.workspace_half_width - margin
-        self.step_function = casadi_step_function(
-            robot, field_model.casadi_field_and_gradient, self.n_currents, cfg.dt, cfg.substeps
+        self.min_aligned_field = (
+            robot.min_aligned_field if cfg.min_aligned_field is None else cfg.min_aligned_field
         )
+        self.free_space = free_space
+        #: the estimate's position covariance (2×2, m²), for the corridor's chance margin
+        self.position_covariance: FloatArray | None = None
         self.problem = OCP(self)
         self.backend: _Backend = (
             RTISolver(self.problem) if cfg.solver == "rti" else IpoptSolver(self.problem)
@@ -134,6 +188,38 @@ class NMPC(Planner):
 
     def reset(self) -> None:
         self.backend.reset()
+        self.position_covariance = None
+
+    def observe_uncertainty(self, covariance: FloatArray | None) -> None:
+        """The estimate's covariance (3×3: x, y, θ), or None: tightens the corridor."""
+        self.position_covariance = None if covariance is None else np.asarray(covariance)[:2, :2]
+
+    def corridor(self, state: FloatArray, reference: FloatArray) -> FloatArray:
+        """The half-planes of each stage 0 … N, shape (N+1, N_PLANES, 3), in mm (scaled)."""
+        N = self.config.horizon
+        planes = np.empty((N + 1, N_PLANES, 3))
+        planes[:] = INACTIVE
+        fs = self.free_space
+        if fs is None:
+            return planes
+        plan = self.backend.states_plan()  # X_1 … X_N of the last plan, scaled
+        if plan is None:
+            positions = reference[:, :2]
+        else:
+            positions = np.vstack([state[:2], plan[1:, :2] * 1e-3, plan[-1:, :2] * 1e-3])
+        cfg = self.config
+        margin = np.full(N + 1, cfg.corridor_margin)
+        if self.position_covariance is not None and fs.critical is not None:
+            _, n = fs.nearest(positions, [fs.critical])
+            var = np.einsum("ki,ij,kj->k", n, self.position_covariance, n)
+            extra = cfg.corridor_sigmas * np.sqrt(np.maximum(var, 0.0))
+            # never more than a share of the free width: a margin the channel cannot give
+            # would press the body into the other wall and fight it
+            free = fs.free_width(positions) - fs.diameter - 2 * cfg.corridor_margin
+            margin = margin + np.minimum(extra, cfg.corridor_share * np.maximum(free, 0.0))
+        planes = fs.half_planes(positions, margin, cfg.corridor_margin)
+        planes[:, :, 2] /= 1e-3  # c in mm, as the scaled positions
+        return planes
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         X = self._predict(np.asarray(state) / STATE_SCALE, np.asarray(currents) / self.max_current)
@@ -148,7 +234,8 @@ class NMPC(Planner):
             raise ValueError(f"reference must have shape ({N + 1}, 3), got {ref.shape}")
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
         t0 = time.perf_counter()
-        result = self.backend.solve(x0 / STATE_SCALE, u_prev, ref)
+        params = self.problem.stage_parameters(ref, self.corridor(x0, ref))
+        result = self.backend.solve(x0 / STATE_SCALE, u_prev, params)
         elapsed = time.perf_counter() - t0
         if result.ok:
             currents = result.u0 * self.max_current
@@ -183,48 +270,112 @@ class OCP:
         scale = ca.DM(STATE_SCALE)
         X = ca.SX.sym("X", NX)  # scaled
         u = ca.SX.sym("u", nu)  # I / I_max
-        X_next = nmpc.step_function(X * scale, u * nmpc.max_current) / scale
+        # the field at the stage's start, shared by the dynamics and the heading residual
+        B, G = nmpc.model.casadi_field_and_gradient(X[:2] * 1e-3, u * nmpc.max_current)
+        Bl, Gl = [B[0], B[1]], [[G[0, 0], G[0, 1]], [G[1, 0], G[1, 1]]]
+        X_si = X * scale
+        nxt = discrete_step(
+            tuple(X_si[i] for i in range(NX)), lambda _x, _y: (Bl, Gl), nmpc.robot, cfg.dt,
+            cfg.substeps, CASADI_OPS,
+        )  # fmt: skip
+        X_next = ca.vertcat(*nxt) / scale
         #: X_{k+1}(X_k, u_k), scaled
         self.step_scaled = ca.Function("nmpc_step", [X, u], [X_next], ["X", "u"], ["X_next"])
-        # residuals: r = [√q (p − p_ref), √qθ wrap(θ − θ_ref)] for the pose, and
-        # [√R u, √S (u − u_prev)] for the currents; the cost is Σ |r|²
-        ref = ca.SX.sym("ref", 3)  # scaled: mm, mm, rad
+        # residuals, the cost is Σ |r|²: r = [√q (p − p_ref), √qθ wrap(θ − θ_ref)] for the
+        # pose, [√R u, √S (u − u_prev)] for the currents, and the soft constraints'
+        # √w min(0, g): the heading's on (X_k, u_k), the corridor's on X_k
+        par = ca.SX.sym("par", NP)  # reference (mm, mm, rad), half-planes (nx, ny, c mm)
         self.pose_residual = {
-            "stage": self._pose_residual(X, ref, cfg.q_position, cfg.q_angle),
-            "terminal": self._pose_residual(X, ref, cfg.p_position, cfg.q_angle_terminal),
+            "stage": self._pose_residual(X, par, cfg.q_position, cfg.q_angle),
+            "terminal": self._pose_residual(X, par, cfg.p_position, cfg.q_angle_terminal),
         }
-        self._X, self._ref = X, ref
+        along = (ca.cos(X[2]) * B[0] + ca.sin(X[2]) * B[1]) * 1e3  # mT
+        b_min = nmpc.min_aligned_field * 1e3
+        # the weighted gaps √w g (≥ 0 where satisfied); the residuals are min(0, ·) of them
+        self.heading_gap = ca.Function(
+            "heading_gap", [X, u], [np.sqrt(cfg.heading_weight) * (along - b_min)]
+        )
+        self.heading_residual = ca.Function(
+            "heading_residual", [X, u], [ca.fmin(0, self.heading_gap(X, u))]
+        )
+        self.has_heading = cfg.heading_weight > 0
+        #: the heading residual at B_∥ = 0 (a violation of B_min)
+        self.heading_scale = np.sqrt(cfg.heading_weight) * b_min
+        self.heading_check = self.maybe_compiled(self.heading_residual)
+        fs = nmpc.free_space
+        half_axis = (fs.half_axis if fs is not None else 0.0) / 1e-3  # mm
+        ends = [X[:2] + e * ca.vertcat(ca.cos(X[2]), ca.sin(X[2])) for e in (-half_axis, half_axis)]
+        weights = (cfg.corridor_weight, cfg.corridor_other_weight)  # plane 0: the critical
+        gaps = [
+            np.sqrt(weights[j]) * (par[3 + 3 * j] * e[0] + par[4 + 3 * j] * e[1] - par[5 + 3 * j])
+            for j in range(N_PLANES)
+            for e in ends
+            if weights[j] > 0
+        ]
+        self.corridor_gap = ca.Function("corridor_gap", [X, par], [ca.vertcat(*gaps)])
+        self.corridor_residual = ca.Function(
+            "corridor_residual", [X, par], [ca.fmin(0, ca.vertcat(*gaps))]
+        )
+        self.has_corridor = fs is not None and bool(gaps)
 
     @staticmethod
-    def _pose_residual(X: Any, ref: Any, qp: float, qa: float) -> ca.Function:
-        d = X[2] - ref[2]
+    def _pose_residual(X: Any, par: Any, qp: float, qa: float) -> ca.Function:
+        d = X[2] - par[2]
         r = ca.vertcat(
-            np.sqrt(qp) * (X[:2] - ref[:2]), np.sqrt(qa) * ca.atan2(ca.sin(d), ca.cos(d))
+            np.sqrt(qp) * (X[:2] - par[:2]), np.sqrt(qa) * ca.atan2(ca.sin(d), ca.cos(d))
         )
-        return ca.Function("pose_residual", [X, ref], [r])
+        return ca.Function("pose_residual", [X, par], [r])
+
+    def corridor(self, X: Any, par: Any) -> Any:
+        """The corridor's residuals at state X (empty without a free space)."""
+        return self.corridor_residual(X, par) if self.has_corridor else ca.DM.zeros(0, 1)
+
+    def heading(self, X: Any, u: Any) -> Any:
+        """The heading-stable field's residual of X and u (empty when switched off)."""
+        return self.heading_residual(X, u) if self.has_heading else ca.DM.zeros(0, 1)
+
+    def soft_gaps(self, X: Any, u: Any | None, par: Any) -> Any:
+        """The weighted gaps of a stage's soft constraints (heading when ``u`` is given, the
+        corridor): the IPOPT form, with a slack s ≥ 0 per row, gap + s ≥ 0 and cost s², which
+        is the same penalty as the residuals min(0, gap) and smooth for an exact Hessian."""
+        parts = []
+        if u is not None and self.has_heading:
+            parts.append(self.heading_gap(X, u))
+        if self.has_corridor:
+            parts.append(self.corridor_gap(X, par))
+        return ca.vertcat(*parts) if parts else ca.MX(0, 1)
 
     def maybe_compiled(self, function: ca.Function) -> ca.Function:
         return compiled(function) if self.config.compile else function
 
-    def scaled_reference(self, ref: FloatArray) -> FloatArray:
-        """(N+1, 3) SI poses to (3, N+1) scaled columns."""
-        out = ref.T.copy()
+    def stage_parameters(self, ref: FloatArray, planes: FloatArray | None = None) -> FloatArray:
+        """(N+1, 3) SI reference poses and (N+1, N_PLANES, 3) half-planes (mm; default: none)
+        to the (NP, N+1) scaled parameter columns."""
+        out = np.empty((NP, self.N + 1))
+        out[:3] = ref.T
         out[:2] /= 1e-3
+        if planes is None:
+            planes = np.empty((self.N + 1, N_PLANES, 3))
+            planes[:] = INACTIVE
+        out[3:] = planes.reshape(self.N + 1, -1).T
         return out
 
-    def cost(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray, u: FloatArray) -> float:
-        """The objective for currents u (N, nu), states simulated from x0 (scaled): for tests."""
+    def cost(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, u: FloatArray) -> float:
+        """The objective for currents u (N, nu), states simulated from x0 (scaled), stage
+        parameters ``par`` (:meth:`stage_parameters`): for tests."""
         cfg = self.config
-        refs = self.scaled_reference(ref)
         J, X, before = 0.0, x0, u_prev
         for k in range(self.N):
             if k > 0:
-                J += float(ca.sumsqr(self.pose_residual["stage"](X, refs[:, k])))
+                J += float(ca.sumsqr(self.pose_residual["stage"](X, par[:, k])))
+                J += float(ca.sumsqr(self.corridor(X, par[:, k])))
+            J += float(ca.sumsqr(self.heading(X, u[k])))
             J += cfg.r_current * float(np.sum(u[k] ** 2))
             J += cfg.s_current_change * float(np.sum((u[k] - before) ** 2))
             X = np.asarray(self.step_scaled(X, u[k])).ravel()
             before = u[k]
-        return J + float(ca.sumsqr(self.pose_residual["terminal"](X, refs[:, self.N])))
+        J += float(ca.sumsqr(self.corridor(X, par[:, self.N])))
+        return J + float(ca.sumsqr(self.pose_residual["terminal"](X, par[:, self.N])))
 
 
 @dataclass(frozen=True)
@@ -239,7 +390,9 @@ class _Backend:
     def reset(self) -> None:
         raise NotImplementedError
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
+        """One tick's plan from scaled x0, the previous currents and the (NP, N+1) stage
+        parameters (:meth:`OCP.stage_parameters`)."""
         raise NotImplementedError
 
     def fallback(self) -> FloatArray | None:
@@ -248,6 +401,10 @@ class _Backend:
 
     def currents_plan(self) -> FloatArray | None:
         """The last accepted plan's currents, shape (N, nu), scaled; None without one."""
+        raise NotImplementedError
+
+    def states_plan(self) -> FloatArray | None:
+        """The last accepted plan's states X_1 … X_N, shape (N, 6), scaled; None without one."""
         raise NotImplementedError
 
 
@@ -269,16 +426,32 @@ class IpoptSolver(_Backend):
         cfg, N, nu = ocp.config, ocp.N, ocp.nu
         x0 = ca.MX.sym("x0", NX)  # scaled
         u_prev = ca.MX.sym("u_prev", nu)
-        ref = ca.MX.sym("ref", 3, N + 1)  # scaled
+        ref = ca.MX.sym("par", NP, N + 1)  # scaled stage parameters
         us = [ca.MX.sym(f"u{k}", nu) for k in range(N)]
         Xs = [ca.MX.sym(f"X{k + 1}", NX) for k in range(N)]
         J: Any = 0
         g, lbg, ubg = [], [], []
+        slacks: list[Any] = []
+        soft_g: list[Any] = []  # after every stage's rows, so warm starts shift stage-wise
         X_before, u_before = x0, u_prev
         stage_r, term_r = ocp.pose_residual["stage"], ocp.pose_residual["terminal"]
+
+        def soften(gap: Any, name: str) -> Any:
+            """s ≥ 0 with gap + s ≥ 0; returns Σ s² (the soft constraints, see soft_gaps)."""
+            if gap.shape[0] == 0:
+                return 0
+            s = ca.MX.sym(name, gap.shape[0])
+            slacks.append(s)
+            soft_g.append(gap + s)
+            return ca.sumsqr(s)
+
         for k in range(N):
             if k > 0:
                 J += ca.sumsqr(stage_r(X_before, ref[:, k]))
+                J += soften(ocp.soft_gaps(X_before, us[k], ref[:, k]), f"s{k}")
+            else:  # X₀ is given: only the heading is the plan's to keep
+                J += soften(ocp.soft_gaps(X_before, us[k], ref[:, k])[: int(ocp.has_heading)],
+                            "s0")  # fmt: skip
             du = us[k] - u_before
             J += cfg.r_current * ca.sumsqr(us[k]) + cfg.s_current_change * ca.sumsqr(du)
             g += [ocp.step_scaled(X_before, us[k]) - Xs[k], du]
@@ -286,11 +459,19 @@ class IpoptSolver(_Backend):
             ubg += [np.zeros(NX), np.full(nu, ocp.du_max)]
             X_before, u_before = Xs[k], us[k]
         J += ca.sumsqr(term_r(X_before, ref[:, N]))
-        w = ca.vertcat(*[ca.vertcat(us[k], Xs[k]) for k in range(N)])
+        J += soften(ocp.soft_gaps(X_before, None, ref[:, N]), "sN")
+        slack = ca.vertcat(*slacks) if slacks else ca.MX(0, 1)
+        g += soft_g
+        lbg.append(np.zeros(slack.shape[0]))
+        ubg.append(np.full(slack.shape[0], np.inf))
+        w = ca.vertcat(*[ca.vertcat(us[k], Xs[k]) for k in range(N)], slack)
         p = ca.vertcat(x0, u_prev, ca.vec(ref))
         self._lbg, self._ubg = np.concatenate(lbg), np.concatenate(ubg)
         stage_lb = np.concatenate([np.full(nu, -1.0), [-ocp.pos_max] * 2, [-np.inf] * 4])
-        self._lbx, self._ubx = np.tile(stage_lb, N), np.tile(-stage_lb, N)
+        n_slack = slack.shape[0]
+        self._lbx = np.concatenate([np.tile(stage_lb, N), np.zeros(n_slack)])
+        self._ubx = np.concatenate([np.tile(-stage_lb, N), np.full(n_slack, np.inf)])
+        self._n_main = N * (nu + NX)
         self._stage = nu + NX
         opts: dict[str, Any] = {
             "print_time": False,
@@ -346,16 +527,19 @@ class IpoptSolver(_Backend):
         self._lam_x: FloatArray | None = None
 
     def _shift(self, v: FloatArray, width: int) -> FloatArray:
-        return np.concatenate([v[width:], v[-width:]])
+        """The stage-wise part moved one stage on (the last repeated); slacks zero."""
+        main = v[: self._n_main]
+        return np.concatenate([main[width:], main[-width:], np.zeros(v.size - self._n_main)])
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
         ns, nu = self._stage, self.ocp.nu
-        p = np.concatenate([x0, u_prev, self.ocp.scaled_reference(ref).ravel(order="F")])
+        p = np.concatenate([x0, u_prev, par.ravel(order="F")])
         args: dict[str, Any] = {
             "p": p, "lbx": self._lbx, "ubx": self._ubx, "lbg": self._lbg, "ubg": self._ubg,
         }  # fmt: skip
         if self._w is None:
-            args["x0"] = np.tile(np.concatenate([u_prev, x0]), self.ocp.N)
+            cold = np.tile(np.concatenate([u_prev, x0]), self.ocp.N)
+            args["x0"] = np.concatenate([cold, np.zeros(self._lbx.size - cold.size)])
             solver = self.solver
         else:
             assert self._lam_g is not None
@@ -385,7 +569,12 @@ class IpoptSolver(_Backend):
     def currents_plan(self) -> FloatArray | None:
         if self._w is None:
             return None
-        return self._w.reshape(self.ocp.N, self._stage)[:, : self.ocp.nu].copy()
+        return self._w[: self._n_main].reshape(self.ocp.N, self._stage)[:, : self.ocp.nu].copy()
+
+    def states_plan(self) -> FloatArray | None:
+        if self._w is None:
+            return None
+        return self._w[: self._n_main].reshape(self.ocp.N, self._stage)[:, self.ocp.nu :].copy()
 
 
 # --------------------------------------------------------------------------------------------
@@ -410,12 +599,14 @@ class RTISolver(_Backend):
         # one stage: s = (X, u_prev), v = Δu; next state, its Jacobians, residuals, Jacobians
         s = ca.SX.sym("s", ns)
         v = ca.SX.sym("v", nu)
-        ref = ca.SX.sym("ref", 3)
+        ref = ca.SX.sym("par", NP)
         X, up = s[:NX], s[NX:]
         u = up + v
         s_next = ca.vertcat(ocp.step_scaled(X, u), u)
         r = ca.vertcat(
             ocp.pose_residual["stage"](X, ref),
+            ocp.corridor(X, ref),
+            ocp.heading(X, u),
             np.sqrt(cfg.r_current) * u,
             np.sqrt(cfg.s_current_change) * v,
         )
@@ -425,13 +616,13 @@ class RTISolver(_Backend):
             [s_next, ca.jacobian(s_next, s), ca.jacobian(s_next, v), r,
              ca.jacobian(r, s), ca.jacobian(r, v)],
         )  # fmt: skip
-        rN = ocp.pose_residual["terminal"](X, ref)
+        rN = ca.vertcat(ocp.pose_residual["terminal"](X, ref), ocp.corridor(X, ref))
         terminal = ca.Function("rti_terminal", [s, ref], [rN, ca.jacobian(rN, s)])
 
         # the whole QP, in MX over the stage function mapped along the horizon
         z = ca.MX.sym("z", self.nz)
         s0 = ca.MX.sym("s0", ns)
-        refs = ca.MX.sym("ref", 3, N + 1)
+        refs = ca.MX.sym("par", NP, N + 1)
         S, V = self._split(z)  # S: s₁ … s_N (ns × N), V: v₀ … v_{N−1} (nu × N)
         S_from = ca.horzcat(s0, S[:, : N - 1])
         fk, Ak, Bk, rk, Jsk, Jvk = stage.map(N)(S_from, V, refs[:, :N])
@@ -532,10 +723,10 @@ class RTISolver(_Backend):
     def reset(self) -> None:
         self._z: FloatArray | None = None
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, ref: FloatArray) -> SolveResult:
+    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
         cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
-        refs = self.ocp.scaled_reference(ref)
+        refs = par
         if self._z is None:  # cold: hold the currents, rest at x0, iterate to convergence
             N = self.ocp.N
             z = self._pack(np.tile(s0, (N, 1)), np.zeros((N, self.ocp.nu)))
@@ -544,7 +735,8 @@ class RTISolver(_Backend):
             z = self._shifted(self._z)
             budget = cfg.iterations
         iterations, message = 0, ""
-        for _ in range(budget):
+        corrections = cfg.corrective_iterations
+        while iterations < budget:
             H, g, A, b, lbx, ubx = self.qp_data(z, s0, refs)
             iterations += 1
             # a non-finite state or model reaches the gradient and the gaps (H alone cannot be)
@@ -567,9 +759,23 @@ class RTISolver(_Backend):
             z = z + step
             if np.max(np.abs(step)) < cfg.step_tolerance:
                 break
+            if iterations == budget and corrections > 0 and self._heading_sagged(x0, z, u_prev):
+                # the linearisation did not see the heading residual (it was inactive there)
+                # and the step went well past it: once more, from where it is active
+                corrections -= 1
+                budget += 1
         self._z = z
         _, V = self._unpack(z)
         return SolveResult(True, u_prev + V[0], iterations, message)
+
+    def _heading_sagged(self, x0: FloatArray, z: FloatArray, u_prev: FloatArray) -> bool:
+        """Whether the first currents of plan ``z`` put the field along the moment at the
+        start state more than ``corrective_sag`` × B_min below B_min."""
+        if not self.ocp.has_heading:
+            return False
+        _, V = self._unpack(z)
+        r = float(self.ocp.heading_check(x0, u_prev + V[0]))
+        return r < -self.ocp.config.corrective_sag * self.ocp.heading_scale
 
     def _shifted(self, z: FloatArray) -> FloatArray:
         S, V = self._unpack(z)
@@ -587,3 +793,9 @@ class RTISolver(_Backend):
             return None
         S, _ = self._unpack(self._z)
         return S[:, NX:].copy()  # s_{k+1} holds u_k
+
+    def states_plan(self) -> FloatArray | None:
+        if self._z is None:
+            return None
+        S, _ = self._unpack(self._z)
+        return S[:, :NX].copy()

@@ -1,0 +1,258 @@
+"""Where the robot's body can be: the workspace square, or a phantom's channel inside it.
+
+The controllers are given the workspace geometry the protocol declares, as a
+:class:`FreeSpace`: the boundary polylines (a phantom's, in file order closing its outline;
+for the open workspace the square's four walls), which of them is ``critical``, and the
+robot's body, a capsule of length L and diameter D (a segment of length L − D, radius D/2).
+Two things are built on it:
+
+- :meth:`FreeSpace.project`: a pose moved into the space the body can occupy (inside the
+  outline, the body clear of every boundary). The controller passes every estimate through
+  it, so an estimate cannot leave the channel, whatever the measurements or the planner do.
+- :meth:`FreeSpace.half_planes`: at given positions, the nearest point of the critical
+  boundary and of the other boundaries, as half-planes ``n·p ≥ c`` that the body's two end
+  points must satisfy: the NMPC's corridor constraints (:mod:`magrun.control.nmpc`). With
+  the body's ends on the free side, its heading is limited where the channel is narrow.
+
+All lengths in metres.
+
+    >>> fs = FreeSpace.square(0.05, length=0.016, diameter=0.0028)
+    >>> fs.project([0.06, 0.0, 0.0])[0].round(4)          # pushed back inside the square
+    np.float64(0.0486)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from magrun.phantom import segment_distances, segments_cross
+from magrun.scene import Walls
+
+FloatArray = NDArray[np.float64]
+
+#: a half-plane that never binds: n = 0, c = −∞ (as finite numbers for the solver), m
+INACTIVE = (0.0, 0.0, -1.0)
+
+
+@dataclass(frozen=True)
+class FreeSpace:
+    """A closed outline of named boundaries and the capsule body that moves inside it.
+
+    Parameters
+    ----------
+    boundaries : dict of str to ndarray, shape (n, 2)
+        Polylines, m, that in this order close the outline.
+    critical : str or None
+        The boundary whose clearance matters (its margin is tightened by the estimate's
+        uncertainty), or None.
+    length, diameter : float
+        The robot's body, m.
+    """
+
+    boundaries: dict[str, FloatArray]
+    critical: str | None
+    length: float
+    diameter: float
+    _segments: dict[str, tuple[FloatArray, FloatArray]] = field(
+        init=False, repr=False, compare=False
+    )
+    _fitting: FloatArray | None = field(init=False, repr=False, compare=False, default=None)
+
+    def __post_init__(self) -> None:
+        outline = np.concatenate(list(self.boundaries.values()))
+        x, y = outline[:, 0], outline[:, 1]
+        area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        side = 1.0 if area > 0 else -1.0  # counter-clockwise: the interior is on the left
+        segs: dict[str, tuple[FloatArray, FloatArray]] = {}
+        for name, line in self.boundaries.items():
+            s = np.stack([line[:-1], line[1:]], axis=1)
+            d = s[:, 1] - s[:, 0]
+            keep = np.hypot(d[:, 0], d[:, 1]) > 1e-12
+            s, d = s[keep], d[keep]
+            inward = (
+                side * np.column_stack([-d[:, 1], d[:, 0]]) / np.hypot(d[:, 0], d[:, 1])[:, None]
+            )
+            segs[name] = (s, inward)
+        object.__setattr__(self, "_segments", segs)
+
+    @classmethod
+    def square(cls, half_width: float, length: float, diameter: float) -> FreeSpace:
+        """The open workspace: the square |x|, |y| ≤ ``half_width``, no critical boundary."""
+        h = half_width
+        corners = np.array([[-h, -h], [h, -h], [h, h], [-h, h], [-h, -h]])
+        return cls({"workspace": corners}, None, length, diameter)
+
+    @property
+    def radius(self) -> float:
+        return self.diameter / 2
+
+    @property
+    def half_axis(self) -> float:
+        """Half the length of the body's axis segment (the capsule's end-cap centres), m."""
+        return max(self.length / 2 - self.diameter / 2, 0.0)
+
+    def walls(self) -> Walls:
+        return Walls(np.concatenate([s for s, _ in self._segments.values()]))
+
+    def nearest(self, points: ArrayLike, names: list[str]) -> tuple[FloatArray, FloatArray]:
+        """Nearest point of the named boundaries to each point, and the normal into the free
+        side there. ``points`` (m, 2); returns ``(q, n)``, each (m, 2)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        segs = np.concatenate([self._segments[k][0] for k in names])
+        inward = np.concatenate([self._segments[k][1] for k in names])
+        a, b = segs[None, :, 0], segs[None, :, 1]
+        ab = b - a
+        u = np.clip(np.sum((p[:, None] - a) * ab, axis=-1) / np.sum(ab * ab, axis=-1), 0, 1)
+        q = a + u[..., None] * ab  # (m, n, 2)
+        d = np.hypot(*np.moveaxis(p[:, None] - q, -1, 0))
+        j = np.argmin(d, axis=1)
+        rows = np.arange(len(p))
+        qj, dj, nj = q[rows, j], d[rows, j], inward[j]
+        # off a vertex the direction to the point is the smooth normal; its sign is the side
+        r = p - qj
+        with np.errstate(invalid="ignore", divide="ignore"):
+            radial = r / dj[:, None]
+        sign = np.where(np.sum(r * nj, axis=1) >= 0, 1.0, -1.0)
+        n = np.where((dj > 1e-9)[:, None], sign[:, None] * radial, nj)
+        return qj, n
+
+    def half_planes(
+        self, positions: ArrayLike, critical_margin: ArrayLike = 0.0, margin: float = 0.0
+    ) -> FloatArray:
+        """Corridor half-planes at each position: shape (m, 2, 3), rows ``(nx, ny, c)``.
+
+        Row 0 is the critical boundary's (:data:`INACTIVE` without one), row 1 the nearest
+        other boundary's. The body's end points e must satisfy ``n·e ≥ c``, where
+        ``c = n·q + D/2 + margin`` (``critical_margin``, per position or one number, for the
+        critical boundary): the body then keeps that margin from the boundary near q.
+        """
+        p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+        out = np.empty((len(p), 2, 3))
+        out[:] = INACTIVE
+        others = [k for k in self.boundaries if k != self.critical]
+        groups = [([self.critical] if self.critical else [], critical_margin), (others, margin)]
+        for row, (names, extra) in enumerate(groups):
+            if not names:
+                continue
+            q, n = self.nearest(p, names)
+            out[:, row, :2] = n
+            out[:, row, 2] = np.sum(n * q, axis=1) + self.radius + np.asarray(extra)
+        return out
+
+    def free_width(self, positions: ArrayLike) -> FloatArray:
+        """Width, m, of the free space across the critical boundary at each position: from
+        its nearest point, along its normal, to the nearest other boundary's half-plane
+        (∞ without a critical boundary or where the other boundary faces away)."""
+        p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+        others = [k for k in self.boundaries if k != self.critical]
+        if self.critical is None or not others:
+            return np.full(len(p), np.inf)
+        q1, n1 = self.nearest(p, [self.critical])
+        q2, n2 = self.nearest(p, others)
+        facing = -np.sum(n1 * n2, axis=1)  # 1 when the other wall is straight across
+        across = np.sum(n2 * (q2 - q1), axis=1)  # the other wall's distance along its normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            width = np.where(facing > 0.1, -across / facing, np.inf)
+        return width
+
+    def contains(self, point: ArrayLike) -> bool:
+        """Whether a point lies inside the outline (even-odd rule)."""
+        x, y = np.asarray(point, dtype=np.float64)[:2]
+        poly = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
+        a, b = poly, np.roll(poly, -1, axis=0)
+        cross = (a[:, 1] > y) != (b[:, 1] > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xi = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+        return bool(np.count_nonzero(cross & (x < xi)) % 2)
+
+    def project(self, pose: ArrayLike) -> FloatArray:
+        """``pose`` (x, y, θ) moved into the free space: the centre inside the outline and the
+        body clear of every boundary.
+
+        A centre outside goes to the nearest boundary point, a body radius in; a body through
+        a wall turns along it (to the nearer of the wall's two directions); then it is pushed
+        and turned out as :meth:`Walls.resolve_capsule` does (translation and rotation of the
+        tip equally cheap), up to three rounds. Where that does not settle (a body jammed in a
+        corner), the nearest of a grid of poses that fit (0.5 mm, 11.25°; built once, on first
+        need) is taken. A pose already in the free space is returned unchanged; a non-finite
+        one as it is."""
+        p = np.asarray(pose, dtype=np.float64).copy()
+        if not np.all(np.isfinite(p)):
+            return p
+        names = list(self.boundaries)
+        for _ in range(3):
+            if self.contains(p[:2]) and self.clearance(p) >= -1e-7:
+                return p
+            if not self.contains(p[:2]):
+                q, n = self.nearest(p[:2], names)
+                p[:2] = q[0] + n[0] * self.radius * 1.001
+            if self.clearance(p) < -self.radius / 2:  # an end cap's centre through a wall
+                _, n = self.nearest(p[:2], names)
+                along = math.atan2(n[0, 0], -n[0, 1])  # the wall's direction
+                p[2] = along + round((p[2] - along) / math.pi) * math.pi
+            state = (float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0)
+            tip = max(self.length / 2, 1e-6)
+            moved, _ = self.walls().resolve_capsule(
+                state, self.half_axis, self.radius * 1.002, 1.0, tip * tip, iterations=64
+            )
+            p[:3] = moved[:3]
+        if self.contains(p[:2]) and self.clearance(p) >= -1e-7:
+            return p
+        return self._nearest_fitting(np.asarray(pose, dtype=np.float64))
+
+    def _nearest_fitting(self, pose: FloatArray) -> FloatArray:
+        """The grid pose that fits nearest to ``pose`` (heading compared modulo π, the
+        capsule being symmetric, then turned to the nearer of θ, θ + π)."""
+        if self._fitting is None:
+            object.__setattr__(self, "_fitting", self._fitting_poses())
+        grid = self._fitting
+        assert grid is not None
+        dth = (grid[:, 2] - pose[2] + math.pi / 2) % math.pi - math.pi / 2
+        cost = np.hypot(grid[:, 0] - pose[0], grid[:, 1] - pose[1]) + self.half_axis * np.abs(dth)
+        best = grid[int(np.argmin(cost))].copy()
+        best[2] = pose[2] + float(dth[int(np.argmin(cost))])
+        return best
+
+    def _fitting_poses(self, pitch: float = 0.5e-3, headings: int = 16) -> FloatArray:
+        outline = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
+        lo, hi = outline.min(axis=0), outline.max(axis=0)
+        xs = np.arange(lo[0], hi[0] + pitch, pitch)
+        ys = np.arange(lo[1], hi[1] + pitch, pitch)
+        centres = np.array([(x, y) for x in xs for y in ys if self.contains((x, y))])
+        segs = np.concatenate([s for s, _ in self._segments.values()])
+        a, b = segs[None, :, 0], segs[None, :, 1]
+        out = []
+        for th in np.arange(headings) * math.pi / headings:
+            axis = np.array([math.cos(th), math.sin(th)]) * self.half_axis
+            p0, p1 = (centres - axis)[:, None], (centres + axis)[:, None]
+            d = np.minimum.reduce([
+                _point_segment(p0, a, b), _point_segment(p1, a, b),
+                _point_segment(a, p0, p1), _point_segment(b, p0, p1),
+            ])  # fmt: skip
+            d = np.where(segments_cross(p0, p1, a, b), 0.0, d)
+            ok = d.min(axis=1) >= self.radius * 1.001
+            out.append(np.column_stack([centres[ok], np.full(int(ok.sum()), th)]))
+        grid = np.concatenate(out)
+        if not len(grid):
+            raise ValueError("the robot's body fits nowhere in this free space")
+        return grid
+
+    def clearance(self, pose: ArrayLike, names: list[str] | None = None) -> float:
+        """Least distance, m, from the body at ``pose`` to the named boundaries (default:
+        all); negative when it overlaps one."""
+        p = np.asarray(pose, dtype=np.float64)
+        axis = np.array([math.cos(p[2]), math.sin(p[2])]) * self.half_axis
+        ends = np.stack([p[:2] - axis, p[:2] + axis])
+        segs = np.concatenate([self._segments[k][0] for k in (names or list(self.boundaries))])
+        return float(segment_distances(ends[0], ends[1], segs).min() - self.radius)
+
+
+def _point_segment(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distances from points ``p`` to segments ``a``–``b``, broadcast over leading axes."""
+    ab = b - a
+    u = np.clip(np.sum((p - a) * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-30), 0, 1)
+    return np.hypot(*np.moveaxis(p - (a + u[..., None] * ab), -1, 0))

@@ -1,0 +1,180 @@
+"""The free space the controllers are given: projection of estimates, the corridor's
+half-planes, the NMPC's corridor constraint, and a spine trial that stays off the critical
+wall."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from magrun.control.base import Controller, ControllerStatus, Plan, Planner
+from magrun.control.methods import make_controller
+from magrun.control.nmpc import NMPC, STATE_SCALE, NMPCConfig
+from magrun.estimation import KalmanPoseFilter
+from magrun.freespace import FreeSpace
+from magrun.loop import run_trial
+from magrun.phantom import load_phantom
+from magrun.protocol import load_protocol
+from magrun.rigs.sim import SimRig
+from magrun.robot import load_robots
+from magrun.runner import build_scene, free_space_of
+
+PROTOCOLS = Path(__file__).parents[1] / "protocols"
+
+
+@pytest.fixture(scope="module")
+def spine() -> FreeSpace:
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    robot = load_robots()["drug_delivery"]
+    return FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+
+
+coordinate = st.floats(-0.06, 0.06, allow_nan=False)
+angle = st.floats(-10.0, 10.0, allow_nan=False)
+
+
+@settings(max_examples=150, deadline=None)
+@given(x=coordinate, y=coordinate, theta=angle)
+def test_projection_puts_the_body_in_the_channel(spine: FreeSpace, x, y, theta) -> None:
+    """Any pose, however far outside: the projected centre is inside the outline and the
+    body clear of every boundary (to 1 µm)."""
+    p = spine.project(np.array([x, y, theta]))
+    assert spine.contains(p[:2])
+    assert spine.clearance(p) >= -1e-6
+
+
+def test_projection_keeps_a_pose_that_fits(spine: FreeSpace) -> None:
+    """A pose on the delivery path, body along it, comes back unchanged."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    assert phantom.path is not None
+    a, b = phantom.path[40], phantom.path[41]
+    pose = np.array([*a, math.atan2(*(b - a)[::-1])])
+    assert spine.clearance(pose) > 0
+    np.testing.assert_array_equal(spine.project(pose), pose)
+
+
+def test_half_planes_face_into_the_channel(spine: FreeSpace) -> None:
+    """At points of the path, each half-plane's normal points from its wall into the channel,
+    and c puts the body's edge D/2 + margin from the wall: the path's points satisfy the
+    anterior plane with the clearance the geometry gives (radius 13.4 vs 10.5 mm)."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    assert phantom.path is not None
+    pts = phantom.path[10:150:20]
+    planes = spine.half_planes(pts, critical_margin=0.0, margin=0.0)
+    gap = np.sum(planes[:, 0, :2] * pts, axis=1) - planes[:, 0, 2]
+    # the centre is 13.4 − 10.5 = 2.9 mm from the anterior arc; the plane asks for D/2
+    np.testing.assert_allclose(gap, 2.9e-3 - spine.radius, atol=2e-5)
+    gap_post = np.sum(planes[:, 1, :2] * pts, axis=1) - planes[:, 1, 2]
+    np.testing.assert_allclose(gap_post, 2.1e-3 - spine.radius, atol=2e-5)
+    np.testing.assert_allclose(spine.free_width(pts), 5e-3, atol=2e-5)
+
+
+class _Still(Planner):
+    """A planner that asks for nothing and predicts the pose it is given."""
+
+    def reset(self) -> None:
+        pass
+
+    def plan(self, state, reference, previous) -> Plan:  # type: ignore[no-untyped-def]
+        return Plan(np.zeros(8), np.asarray(state, dtype=np.float64), ControllerStatus(0.0))
+
+    def predict(self, state, currents):  # type: ignore[no-untyped-def]
+        return np.asarray(state, dtype=np.float64)
+
+
+measurements = st.lists(
+    st.one_of(st.none(), st.tuples(coordinate, coordinate, angle)), min_size=1, max_size=30
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(zs=measurements)
+def test_estimate_never_leaves_the_free_space(spine: FreeSpace, zs) -> None:
+    """The Kalman filter fed adversarial measurements (anywhere in ±60 mm, any heading, or
+    none): every estimate the controller hands its planner is inside the channel."""
+    c = Controller("proposed", KalmanPoseFilter(), _Still(), 0.04, 30.0, 1e4, 8, spine)
+    c.reset(np.array([-6e-3, -13.4e-3, 0.0]))
+    ref = np.zeros((21, 3))
+    for z in zs:
+        out = c.step(None if z is None else np.array(z), ref)
+        assert spine.contains(out.estimate[:2])
+        assert spine.clearance(out.estimate) >= -1e-6
+
+
+def test_model_velocity_does_not_spike_at_frames() -> None:
+    """With velocity="model", a measurement that moves the estimate 2 mm does not reach the
+    planner as a 50 mm/s velocity (it does with the finite difference)."""
+    seen: list[np.ndarray] = []
+
+    class _Record(_Still):
+        def plan(self, state, reference, previous):  # type: ignore[no-untyped-def]
+            seen.append(np.asarray(state).copy())
+            return super().plan(state, reference, previous)
+
+    for velocity in ("model", "difference"):
+        seen.clear()
+        c = Controller("p", KalmanPoseFilter(), _Record(), 0.04, 30.0, 1e4, 8, velocity=velocity)
+        c.reset(np.zeros(3))
+        ref = np.zeros((21, 3))
+        c.step(None, ref)
+        c.step(np.array([2e-3, 0.0, 0.0]), ref)
+        speed = float(np.hypot(*seen[-1][3:5]))
+        if velocity == "model":
+            assert speed == 0.0
+        else:
+            assert speed > 0.01
+
+
+def test_corridor_holds_in_the_plan_and_both_solvers_agree(zernike_model) -> None:
+    """A reference 1 mm inside the anterior wall (the critical one): both solvers, to
+    convergence, plan every state with the body's ends on the free side of the stage's
+    critical half-plane (to the soft constraint's sag: 0.05 mm at this weight), and agree."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    robot = load_robots()["drug_delivery"]
+    fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+    centre = np.array([-6e-3, 0.0])
+    a0 = math.radians(-40.0)
+    start = centre + 13.0e-3 * np.array([math.cos(a0), math.sin(a0)])
+    state = np.array([*start, a0 + math.pi / 2, 0.0, 0.0, 0.0])
+    angles = a0 + np.linspace(0.0, 0.15, 21)
+    ref = np.column_stack(
+        [centre[0] + 10.9e-3 * np.cos(angles), centre[1] + 10.9e-3 * np.sin(angles),
+         angles + math.pi / 2]
+    )  # fmt: skip
+    converge = {"iterations": 60, "first_tick_iterations": 60, "step_tolerance": 1e-9}
+    plans = {}
+    for solver in ("rti", "ipopt"):
+        cfg = NMPCConfig(solver=solver, corridor_weight=1e4, tol=1e-10, **converge)  # type: ignore[arg-type]
+        if solver == "ipopt":
+            cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
+        nmpc = NMPC(zernike_model, robot, cfg, fs)
+        assert nmpc.plan(state, ref, np.zeros(8)).status.success
+        X = nmpc.backend.states_plan()
+        assert X is not None
+        poses = X[:, :3] * STATE_SCALE[:3]
+        clear = np.array([fs.clearance(p, [fs.critical]) for p in poses])  # type: ignore[list-item]
+        assert clear.min() >= 0.2e-3 - 0.05e-3, (solver, clear.min())
+        plans[solver] = nmpc.backend.currents_plan()
+    np.testing.assert_allclose(plans["rti"], plans["ipopt"], atol=2e-3)
+
+
+def test_short_spine_trial_with_exact_feedback_keeps_off_the_critical_wall() -> None:
+    """The proposed controller in the spine phantom, exact feedback every tick, the first 12 s
+    (the channel up to the chamber): the body never comes within 0.05 mm of the anterior
+    boundary, and the robot follows the path to under 0.5 mm RMS."""
+    protocol = load_protocol(PROTOCOLS / "spine.yaml")
+    scene = build_scene(protocol)
+    robot = load_robots()[protocol.robot]
+    fs = free_space_of(scene, robot)
+    c = make_controller("proposed", robot, free_space=fs)
+    rig = SimRig.default(robot=protocol.robot, walls=scene.walls, seed=1)
+    log = run_trial(c, rig, scene.reference, duration=12.0)
+    clear = np.array([fs.clearance(p, [fs.critical]) for p in log.actual])
+    assert clear.min() > 0.05e-3
+    assert log.rms_position_mm < 0.5

@@ -1,0 +1,120 @@
+"""Trial health: the warnings a trial that ran to its end still gets, and the one-step
+prediction error the Kalman filter's process noise comes from."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from magrun.control.base import ControllerStatus
+from magrun.freespace import FreeSpace
+from magrun.health import HealthLimits, longest_run, prediction_error, trial_health
+from magrun.loop import TrialLog
+from magrun.phantom import load_phantom
+from magrun.protocol import load_protocol
+from magrun.robot import load_robots
+from magrun.runner import build_scene
+
+PROTOCOLS = Path(__file__).parents[1] / "protocols"
+
+
+def _log(n: int = 100, dt: float = 0.04) -> TrialLog:
+    t = np.arange(n) * dt
+    poses = np.column_stack([np.linspace(0, 1e-2, n), np.zeros(n), np.zeros(n)])
+    return TrialLog(
+        t=t, actual=poses.copy(), tracked=poses.copy(), desired=poses.copy(),
+        measured=poses.copy(), estimated=poses.copy(), predicted=poses.copy(),
+        currents=np.zeros((n, 8)), status=[ControllerStatus(0.001) for _ in range(n)],
+        compute_time=np.full(n, 1e-3),
+    )  # fmt: skip
+
+
+def test_a_clean_trial_has_no_warnings() -> None:
+    figures, warnings = trial_health(_log(), 0.04, 30.0)
+    assert warnings == []
+    assert figures["failed_solves"] == 0
+    assert figures["longest_saturation_s"] == 0.0
+
+
+def test_saturation_failed_solves_and_a_lost_estimate_are_reported() -> None:
+    log = _log()
+    log.currents[10:40, 3] = 30.0  # 30 ticks = 1.2 s at the limit
+    log.currents[50:60, 5] = -29.8  # 10 ticks (≥ 99 % of the limit)
+    for k in range(20, 25):
+        log.status[k] = ControllerStatus(0.001, success=False, fallback="shifted")
+    log.estimated[70, 1] = 8e-3
+    figures, warnings = trial_health(log, 0.04, 30.0, limits=HealthLimits(saturation_s=1.0))
+    assert figures["longest_saturation_s"] == pytest.approx(1.2)
+    assert figures["failed_solves"] == 5
+    assert figures["max_estimate_error_mm"] == pytest.approx(8.0)
+    assert len(warnings) == 3
+    assert "1.2 s" in warnings[1]
+    assert "t = 2.8 s" in warnings[2]
+
+
+def test_contact_with_the_critical_boundary_is_timed() -> None:
+    """Three ticks with the capsule's side against the anterior arc: 0.12 s of contact."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    robot = load_robots()["drug_delivery"]
+    fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+    log = _log(20)
+    angle = math.radians(-30.0)
+    radius = np.full(20, 13.4e-3)
+    radius[5:8] = 10.5e-3 + robot.diameter / 2  # touching, tangent to the arc
+    log.actual[:] = np.column_stack(
+        [-6e-3 + radius * math.cos(angle), radius * math.sin(angle), np.full(20, angle + 1.5708)]
+    )
+    figures, warnings = trial_health(log, 0.04, 30.0, fs)
+    assert figures["critical_contact_s"] == pytest.approx(0.12)
+    assert any("anterior" in w for w in warnings)
+
+
+def test_longest_run() -> None:
+    assert longest_run(np.array([0, 1, 1, 0, 1, 1, 1, 0], dtype=bool)) == 3
+    assert longest_run(np.zeros(4, dtype=bool)) == 0
+
+
+def test_prediction_error_of_exact_and_biased_models() -> None:
+    """A model that predicts the next actual pose exactly has no error; one that is off by
+    0.1 mm in x and 1° every tick has, over one tick, 0.1/√2 mm per axis and 1°, and over 4
+    ticks (a bias adds up: 0.4 mm, 4°) √4 times that per tick."""
+    log = _log(50)
+    step = log.actual[1] - log.actual[0]  # the log moves uniformly along x
+
+    def exact(state: np.ndarray, currents: np.ndarray) -> np.ndarray:
+        return np.concatenate([state[:3] + step, np.zeros(3)])
+
+    def biased(state: np.ndarray, currents: np.ndarray) -> np.ndarray:
+        return exact(state, currents) + np.array([1e-4, 0, math.radians(1.0), 0, 0, 0])
+
+    assert prediction_error(log, 0.04, exact) == pytest.approx((0.0, 0.0), abs=1e-12)
+    pos, ang = prediction_error(log, 0.04, biased)
+    assert pos == pytest.approx(1e-4 / math.sqrt(2))
+    assert ang == pytest.approx(math.radians(1.0))
+    pos, ang = prediction_error(log, 0.04, biased, steps=4)
+    assert pos == pytest.approx(2 * 1e-4 / math.sqrt(2))
+    assert ang == pytest.approx(2 * math.radians(1.0))
+
+
+def test_quick_spine_runs_the_whole_delivery() -> None:
+    """spine.yaml --quick: out, station-keeping, flip and back (the trajectory's full length)."""
+    protocol = load_protocol(PROTOCOLS / "spine.yaml")
+    assert protocol.trial_duration(quick=True) is None  # the trajectory plus 1 s of hold
+    reference = build_scene(protocol).reference
+    poses = reference.poses
+    assert abs(poses[-1, 2] - poses[0, 2]) == pytest.approx(math.pi, abs=1e-9)  # flipped
+    assert np.hypot(*(poses[-1, :2] - poses[0, :2])) < 1e-9  # back at the start
+
+
+def test_second_phantom_is_a_valid_outline_with_a_path_inside() -> None:
+    protocol = load_protocol(PROTOCOLS / "channel.yaml")
+    scene = build_scene(protocol)
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "channel_bends.yaml")
+    robot = load_robots()["drug_delivery"]
+    fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+    assert phantom.path is not None
+    assert all(fs.contains(p) for p in phantom.path[1:-1])
+    assert scene.critical == "medial"
