@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import seaborn as sns
+from matplotlib import colors as mcolors
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
@@ -336,20 +337,83 @@ def _capsule(ax: Any, x: float, y: float, th: float, length: float, diameter: fl
 
 
 # --------------------------------------------------------------------------------------------
+# safety envelope: a phantom under a grid of feedback rates and noise levels
+
+
+def envelope(data: Dataset, protocol: str) -> Figure:
+    """Mean RMS position error and least clearance to the critical boundary over the grid of
+    feedback rate × noise; cells where a trial touched the critical boundary are marked."""
+    _style()
+    trials = data.ok(protocol).copy()
+    rate, noise = "tracking_rate_hz", "noise_sigma_mm"
+    trials["touched"] = trials["min_clearance_mm"] <= 0.05
+    grid = trials.groupby([noise, rate]).agg(
+        rms=("rms_position_mm", "mean"),
+        clearance=("min_clearance_mm", "min"),
+        touched=("touched", "sum"),
+        n=("touched", "size"),
+    )
+    fig = Figure(figsize=(11, 4.6), layout="constrained")
+    axes = fig.subplots(1, 2)
+    critical = next(
+        (r.critical for p, r in data.recordings.items() if p in set(trials["path"])), None
+    )
+    touched = grid["touched"].unstack(rate).sort_index(ascending=False)
+    counts = grid["n"].unstack(rate).sort_index(ascending=False)
+    for ax, value, label, cmap, tag in (
+        (axes[0], "rms", "mean RMS position error (mm)", "viridis", "(a)"),
+        (axes[1], "clearance", f"least clearance to {critical or 'the critical boundary'} (mm)",
+         "RdYlGn", "(b)"),
+    ):  # fmt: skip
+        table = grid[value].unstack(rate).sort_index(ascending=False)
+        values = table.to_numpy(dtype=np.float64)
+        norm = None
+        if value == "clearance":  # diverging at zero: red is into the wall
+            span = max(float(np.nanmax(np.abs(values))), 1e-3)
+            norm = mcolors.TwoSlopeNorm(0.0, -span, span)
+        image = ax.imshow(values, cmap=cmap, norm=norm, aspect="auto")
+        fig.colorbar(image, ax=ax, label=label)
+        for i in range(values.shape[0]):
+            for j in range(values.shape[1]):
+                if np.isfinite(values[i, j]):
+                    ax.text(j, i, f"{values[i, j]:.2f}", ha="center", va="center", fontsize=8)
+                k = touched.iat[i, j]
+                if value == "clearance" and np.isfinite(k) and k > 0:
+                    ax.text(
+                        j, i + 0.32, f"touched {int(k)}/{int(counts.iat[i, j])}",
+                        ha="center", va="center", fontsize=7,
+                    )  # fmt: skip
+        ax.set_xticks(range(values.shape[1]), [f"{c:g}" for c in table.columns])
+        ax.set_yticks(range(values.shape[0]), [f"{r:g}" for r in table.index])
+        ax.set(
+            xlabel=CONDITION_LABELS[rate], ylabel=CONDITION_LABELS[noise],
+            title=f"{tag} {label.split(' (')[0]}",
+        )  # fmt: skip
+    fig.suptitle(f"{protocol}: where the method stops being safe ({len(trials)} trials)")
+    return fig
+
+
+# --------------------------------------------------------------------------------------------
 
 
 def figure_kind(data: Dataset, protocol: str) -> str:
-    """``phantom``, ``sweep`` or ``trajectories``: which figure a protocol's recordings make."""
+    """``envelope``, ``phantom``, ``sweep`` or ``trajectories``: which figure a protocol's
+    recordings make (``envelope``: a phantom under a sweep of rate and noise both)."""
     trials = data.ok(protocol)
     recs = [data.recordings[p] for p in trials["path"] if p in data.recordings]
     if any(r.boundaries for r in recs):
-        return "phantom"
+        both = all(
+            c in trials and trials[c].dropna().nunique() > 1
+            for c in ("tracking_rate_hz", "noise_sigma_mm")
+        )
+        return "envelope" if both else "phantom"
     if swept_condition(trials) is not None:
         return "sweep"
     return "trajectories"
 
 
 KINDS: dict[str, Callable[[Dataset, str], Figure]] = {
+    "envelope": envelope,
     "phantom": phantom,
     "sweep": sweep,
     "trajectories": trajectories,

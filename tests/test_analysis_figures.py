@@ -242,3 +242,31 @@ def test_report_numbers_are_the_datasets(paper: analysis.Dataset) -> None:
     spine = paper.ok("spine")
     assert f"{spine['rms_position_mm'].mean():.2f}" in text
     assert not math.isnan(spine["rms_position_mm"].mean())
+
+
+def test_envelope_figure_maps_rms_and_clearance_over_rate_and_noise(tmp_path: Path) -> None:
+    """A phantom protocol sweeping rate and noise both gets the envelope figure: RMS and least
+    clearance per cell (the synthetic trials' offsets fix both), touches marked."""
+    trials = []
+    for rate in (3.0, 15.0):
+        for sigma in (0.5, 3.0):
+            into = 7.5e-3 if (rate, sigma) == (3.0, 3.0) else 6e-3  # touches in one cell
+            trials.append(
+                SynthTrial(
+                    "envelope", "proposed",
+                    conditions={"tracking_rate_hz": rate, "noise_sigma_mm": sigma},
+                    offset=(0.0, into, 0.0), boundaries={"anterior": wall(8e-3)},
+                    critical="anterior",
+                )
+            )  # fmt: skip
+    data = analysis.load(write_set(tmp_path, trials))
+    assert figures.figure_kind(data, "envelope") == "envelope"
+    fig = figures.envelope(data, "envelope")
+    rms_ax, clear_ax = fig.axes[0], fig.axes[1]
+    rms_cells = sorted(float(t.get_text()) for t in rms_ax.texts)
+    assert rms_cells == pytest.approx([6.0, 6.0, 6.0, 7.5], abs=0.01)
+    texts = [t.get_text() for t in clear_ax.texts]
+    assert "touched 1/1" in texts
+    clear = sorted(float(t) for t in texts if not t.startswith("touched"))
+    # the desired path runs 0 mm off the wall line offset; clearance = 8 − offset − D/2 − L·0
+    assert clear[0] == pytest.approx(data.trials["min_clearance_mm"].min(), abs=0.01)

@@ -177,7 +177,12 @@ def test_shipped_zernike_model_is_the_fit_of_the_shipped_maps(
     orders = {t: f.order for t, f in zernike_model.fits.items()}
     refit = fit_reference(coils, reference, max_order=max(orders.values()), fixed_orders=orders)
     for t, fit in zernike_model.fits.items():
-        assert_allclose(fit.coefficients, refit.model.fits[t].coefficients, rtol=1e-9, atol=1e-15)
+        # near-zero coefficients of a least-squares fit move with the BLAS build and the
+        # processor: compare against the scale of the coefficients, not at rounding noise
+        scale = float(np.max(np.abs(fit.coefficients)))
+        assert_allclose(
+            fit.coefficients, refit.model.fits[t].coefficients, rtol=1e-7, atol=1e-7 * scale
+        )
     # and the shipped orders are what the selection rule picks today
     auto = fit_reference(coils, reference)
     assert {t: f.order for t, f in auto.model.fits.items()} == orders

@@ -23,24 +23,30 @@ ROOT = Path(__file__).resolve().parents[1]
 PROTOCOLS = sorted((ROOT / "protocols").glob("*.yaml"))
 BAD = sorted((ROOT / "tests" / "data" / "bad_protocols").glob("*.yaml"))
 PAPER = {"prediction", "rate", "noise", "rate_under_noise", "spine"}
+#: beyond the paper: the delivery in a second phantom, the spine's safety envelope
+OURS = {"channel", "spine_envelope"}
 
 
 def test_the_five_paper_protocols_are_shipped() -> None:
-    assert {p.stem for p in PROTOCOLS} == PAPER
+    assert {p.stem for p in PROTOCOLS} == PAPER | OURS
 
 
 @pytest.mark.parametrize("path", PROTOCOLS, ids=lambda p: p.stem)
 def test_shipped_protocol_validates_and_matches_the_json_schema(path: Path) -> None:
     protocol = load_protocol(path)
     assert protocol.name == path.stem
-    assert protocol.trials == 3  # the paper's three trials per condition
+    # the paper's three trials per condition (the envelope's grid: two per cell)
+    assert protocol.trials == (2 if path.stem == "spine_envelope" else 3)
     jsonschema.validate(yaml.safe_load(path.read_text()), json.loads(json_schema()))
     full, quick = protocol.expand(), protocol.expand(quick=True)
     n_conditions = math.prod(len(v) for _, v in protocol.sweep.items())
     assert len(full) == len(protocol.methods) * n_conditions * protocol.trials
     assert 1 <= len(quick) < len(full) or len(full) == 3
     assert all(t.index == 0 for t in quick)
-    assert protocol.trial_duration(quick=True) <= protocol.quick.duration_s
+    if protocol.quick.duration_s is None:  # the whole trajectory, as a full run
+        assert protocol.trial_duration(quick=True) == protocol.duration_s
+    else:
+        assert protocol.trial_duration(quick=True) <= protocol.quick.duration_s
 
 
 def test_validate_command_accepts_all_shipped_protocols() -> None:

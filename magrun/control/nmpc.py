@@ -130,7 +130,7 @@ class NMPCConfig:
     # the far wall is what keeps the body off the critical one when the estimate is poor)
     corridor_other_weight: float = 0.0
     corridor_margin: float = 0.2e-3  # m, from every boundary
-    corridor_sigmas: float = 2.0  # κ: the critical margin grows by κ σ of the estimate ...
+    corridor_sigmas: float = 1.0  # κ: the critical margin grows by κ σ of the estimate ...
     corridor_share: float = 1.0  # ... by at most this share of the channel's free width
     substeps: int = 2
     solver: Literal["rti", "ipopt"] = "rti"
