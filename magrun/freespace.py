@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magrun.phantom import segment_distances, segments_cross
-from magrun.scene import Walls
+from magrun.scene import Walls, capsule_disks
 
 FloatArray = NDArray[np.float64]
 
@@ -61,6 +61,9 @@ class FreeSpace:
         init=False, repr=False, compare=False
     )
     _fitting: FloatArray | None = field(init=False, repr=False, compare=False, default=None)
+    _groups: dict[tuple[str, ...], tuple[FloatArray, ...]] = field(
+        init=False, repr=False, compare=False, default_factory=dict
+    )
 
     def __post_init__(self) -> None:
         outline = np.concatenate(list(self.boundaries.values()))
@@ -78,6 +81,7 @@ class FreeSpace:
             )
             segs[name] = (s, inward)
         object.__setattr__(self, "_segments", segs)
+        object.__setattr__(self, "_fitting", self._fitting_poses())
 
     @classmethod
     def square(cls, half_width: float, length: float, diameter: float) -> FreeSpace:
@@ -102,16 +106,15 @@ class FreeSpace:
         """Nearest point of the named boundaries to each point, and the normal into the free
         side there. ``points`` (m, 2); returns ``(q, n)``, each (m, 2)."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        segs = np.concatenate([self._segments[k][0] for k in names])
-        inward = np.concatenate([self._segments[k][1] for k in names])
-        a, b = segs[None, :, 0], segs[None, :, 1]
-        ab = b - a
-        u = np.clip(np.sum((p[:, None] - a) * ab, axis=-1) / np.sum(ab * ab, axis=-1), 0, 1)
-        q = a + u[..., None] * ab  # (m, n, 2)
-        d = np.hypot(*np.moveaxis(p[:, None] - q, -1, 0))
-        j = np.argmin(d, axis=1)
+        a, ab, ab2, inward = self._group(tuple(names))
+        px, py = p[:, :1], p[:, 1:]
+        u = np.clip(((px - a[:, 0]) * ab[:, 0] + (py - a[:, 1]) * ab[:, 1]) / ab2, 0.0, 1.0)
+        qx, qy = a[:, 0] + u * ab[:, 0], a[:, 1] + u * ab[:, 1]  # (m, n)
+        d2 = (px - qx) ** 2 + (py - qy) ** 2
+        j = np.argmin(d2, axis=1)
         rows = np.arange(len(p))
-        qj, dj, nj = q[rows, j], d[rows, j], inward[j]
+        qj = np.column_stack([qx[rows, j], qy[rows, j]])
+        dj, nj = np.sqrt(d2[rows, j]), inward[j]
         # off a vertex the direction to the point is the smooth normal; its sign is the side
         r = p - qj
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -119,6 +122,45 @@ class FreeSpace:
         sign = np.where(np.sum(r * nj, axis=1) >= 0, 1.0, -1.0)
         n = np.where((dj > 1e-9)[:, None], sign[:, None] * radial, nj)
         return qj, n
+
+    def _group(self, names: tuple[str, ...]) -> tuple[FloatArray, ...]:
+        """Segment starts, directions, squared lengths and inward normals of the named
+        boundaries, joined (cached: the corridor asks for them every control tick)."""
+        if names not in self._groups:
+            segs = np.concatenate([self._segments[k][0] for k in names])
+            inward = np.concatenate([self._segments[k][1] for k in names])
+            ab = segs[:, 1] - segs[:, 0]
+            self._groups[names] = (segs[:, 0], ab, np.sum(ab * ab, axis=1), inward)
+        return self._groups[names]
+
+    def corridor(
+        self,
+        positions: ArrayLike,
+        covariance: FloatArray | None,
+        margin: float,
+        sigmas: float,
+        share: float,
+    ) -> FloatArray:
+        """The NMPC's corridor at each position: the critical boundary's row of
+        :meth:`half_planes`, shape (m, 3), with the margin
+        ``margin + min(sigmas · σ_n, share · free width)`` (σ_n: the position ``covariance``'s
+        standard deviation along the boundary's normal; free width: :meth:`free_width` less
+        the body's diameter and twice ``margin``); :data:`INACTIVE` rows without a critical
+        boundary."""
+        p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+        out = np.empty((len(p), 3))
+        out[:] = INACTIVE
+        if self.critical is None:
+            return out
+        q1, n1 = self.nearest(p, [self.critical])
+        extra = np.zeros(len(p))
+        if covariance is not None:
+            var = np.einsum("ki,ij,kj->k", n1, covariance, n1)
+            free = self._width(p, q1, n1) - self.diameter - 2 * margin
+            extra = np.minimum(sigmas * np.sqrt(np.maximum(var, 0.0)), share * np.maximum(free, 0))
+        out[:, :2] = n1
+        out[:, 2] = np.sum(n1 * q1, axis=1) + self.radius + margin + extra
+        return out
 
     def half_planes(
         self, positions: ArrayLike, critical_margin: ArrayLike = 0.0, margin: float = 0.0
@@ -148,10 +190,15 @@ class FreeSpace:
         its nearest point, along its normal, to the nearest other boundary's half-plane
         (∞ without a critical boundary or where the other boundary faces away)."""
         p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-        others = [k for k in self.boundaries if k != self.critical]
-        if self.critical is None or not others:
+        if self.critical is None:
             return np.full(len(p), np.inf)
         q1, n1 = self.nearest(p, [self.critical])
+        return self._width(p, q1, n1)
+
+    def _width(self, p: FloatArray, q1: FloatArray, n1: FloatArray) -> FloatArray:
+        others = [k for k in self.boundaries if k != self.critical]
+        if not others:
+            return np.full(len(p), np.inf)
         q2, n2 = self.nearest(p, others)
         facing = -np.sum(n1 * n2, axis=1)  # 1 when the other wall is straight across
         across = np.sum(n2 * (q2 - q1), axis=1)  # the other wall's distance along its normal
@@ -161,13 +208,18 @@ class FreeSpace:
 
     def contains(self, point: ArrayLike) -> bool:
         """Whether a point lies inside the outline (even-odd rule)."""
-        x, y = np.asarray(point, dtype=np.float64)[:2]
+        return bool(self.inside(np.asarray(point, dtype=np.float64)[None, :2])[0])
+
+    def inside(self, points: ArrayLike) -> NDArray[np.bool_]:
+        """:meth:`contains` for many points (m, 2) at once."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         poly = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
-        a, b = poly, np.roll(poly, -1, axis=0)
-        cross = (a[:, 1] > y) != (b[:, 1] > y)
+        a, b = poly[None], np.roll(poly, -1, axis=0)[None]
+        x, y = p[:, :1], p[:, 1:]
+        cross = (a[..., 1] > y) != (b[..., 1] > y)
         with np.errstate(divide="ignore", invalid="ignore"):
-            xi = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-        return bool(np.count_nonzero(cross & (x < xi)) % 2)
+            xi = a[..., 0] + (y - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
+        return np.count_nonzero(cross & (x < xi), axis=1) % 2 == 1
 
     def project(self, pose: ArrayLike) -> FloatArray:
         """``pose`` (x, y, θ) moved into the free space: the centre inside the outline and the
@@ -177,11 +229,14 @@ class FreeSpace:
         a wall turns along it (to the nearer of the wall's two directions); then it is pushed
         and turned out as :meth:`Walls.resolve_capsule` does (translation and rotation of the
         tip equally cheap), up to three rounds. Where that does not settle (a body jammed in a
-        corner), the nearest of a grid of poses that fit (0.5 mm, 11.25°; built once, on first
-        need) is taken. A pose already in the free space is returned unchanged; a non-finite
-        one as it is."""
+        corner), the nearest of a grid of poses that fit (0.5 mm or 1/60 of the
+        outline, 11.25°; built with the free space, so that no control tick waits for it) is
+        taken. A pose already in the free space is returned unchanged; a non-finite one as it
+        is."""
         p = np.asarray(pose, dtype=np.float64).copy()
         if not np.all(np.isfinite(p)):
+            return p
+        if self._fits(p):
             return p
         names = list(self.boundaries)
         for _ in range(3):
@@ -204,11 +259,23 @@ class FreeSpace:
             return p
         return self._nearest_fitting(np.asarray(pose, dtype=np.float64))
 
+    def _fits(self, pose: FloatArray) -> bool:
+        """A quick sufficient test that the body fits at ``pose``: centre inside, and every
+        disk of the body (radius D/2, at most D/4 apart along the axis) clear of every wall
+        by 5 % of the radius (the disks' outline dips under the capsule's by at most 3 %)."""
+        if not self.contains(pose[:2]):
+            return False
+        a, ab, ab2, _ = self._group(tuple(self.boundaries))
+        s = capsule_disks(self.half_axis, self.radius)
+        px = pose[0] + s[:, None] * math.cos(pose[2])
+        py = pose[1] + s[:, None] * math.sin(pose[2])
+        u = np.clip(((px - a[:, 0]) * ab[:, 0] + (py - a[:, 1]) * ab[:, 1]) / ab2, 0.0, 1.0)
+        d2 = (px - a[:, 0] - u * ab[:, 0]) ** 2 + (py - a[:, 1] - u * ab[:, 1]) ** 2
+        return bool(d2.min() >= (1.05 * self.radius) ** 2)
+
     def _nearest_fitting(self, pose: FloatArray) -> FloatArray:
         """The grid pose that fits nearest to ``pose`` (heading compared modulo π, the
         capsule being symmetric, then turned to the nearer of θ, θ + π)."""
-        if self._fitting is None:
-            object.__setattr__(self, "_fitting", self._fitting_poses())
         grid = self._fitting
         assert grid is not None
         dth = (grid[:, 2] - pose[2] + math.pi / 2) % math.pi - math.pi / 2
@@ -217,14 +284,18 @@ class FreeSpace:
         best[2] = pose[2] + float(dth[int(np.argmin(cost))])
         return best
 
-    def _fitting_poses(self, pitch: float = 0.5e-3, headings: int = 16) -> FloatArray:
+    def _fitting_poses(self, headings: int = 16) -> FloatArray:
         outline = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
         lo, hi = outline.min(axis=0), outline.max(axis=0)
+        pitch = max(0.5e-3, float(np.max(hi - lo)) / 60)
         xs = np.arange(lo[0], hi[0] + pitch, pitch)
         ys = np.arange(lo[1], hi[1] + pitch, pitch)
-        centres = np.array([(x, y) for x in xs for y in ys if self.contains((x, y))])
+        grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
         segs = np.concatenate([s for s, _ in self._segments.values()])
         a, b = segs[None, :, 0], segs[None, :, 1]
+        # centres inside, at least a radius from every wall: the only ones a body can have
+        centres = grid[self.inside(grid)]
+        centres = centres[_point_segment(centres[:, None], a, b).min(axis=1) >= self.radius]
         out = []
         for th in np.arange(headings) * math.pi / headings:
             axis = np.array([math.cos(th), math.sin(th)]) * self.half_axis
@@ -247,7 +318,13 @@ class FreeSpace:
         p = np.asarray(pose, dtype=np.float64)
         axis = np.array([math.cos(p[2]), math.sin(p[2])]) * self.half_axis
         ends = np.stack([p[:2] - axis, p[:2] + axis])
-        segs = np.concatenate([self._segments[k][0] for k in (names or list(self.boundaries))])
+        key = tuple(names or list(self.boundaries))
+        a, ab, ab2, _ = self._group(key)
+        # only walls within reach of the body's axis can be nearest to it
+        u = np.clip(((p[0] - a[:, 0]) * ab[:, 0] + (p[1] - a[:, 1]) * ab[:, 1]) / ab2, 0, 1)
+        centre = np.hypot(p[0] - a[:, 0] - u * ab[:, 0], p[1] - a[:, 1] - u * ab[:, 1])
+        near = centre <= centre.min() + 2 * self.half_axis + 1e-12
+        segs = np.stack([a[near], a[near] + ab[near]], axis=1)
         return float(segment_distances(ends[0], ends[1], segs).min() - self.radius)
 
 

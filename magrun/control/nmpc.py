@@ -28,15 +28,16 @@ relaxes by e³ within one frame period of the slowest fluoroscopy rate (3 Hz).
 
 Corridor
 --------
-With a :class:`~magrun.freespace.FreeSpace` (the protocol's phantom), each stage k ≥ 1 has
-two half-planes, from the boundaries nearest to the previous plan's state there (the
-reference on a trial's first tick): the critical boundary's and the nearest other's
-(:meth:`FreeSpace.half_planes`). Both end points of the body's axis must lie on the free side,
-the body's radius plus a margin away: ``corridor_margin`` from the other boundaries, and from
-the critical one ``corridor_margin`` + κ σ_n, where σ_n is the estimate's standard deviation
-along the boundary's normal (the Kalman filter's covariance, κ = ``corridor_sigmas``): a chance
-constraint, tightened by what the controller does not know. A body too long for the channel's
-width at a heading gets no plan that turns it there.
+With a :class:`~magrun.freespace.FreeSpace` that has a critical boundary (the protocol's
+phantom), each stage k ≥ 1 has a half-plane from the critical boundary's point nearest to the
+previous plan's state there (the reference on a trial's first tick;
+:meth:`FreeSpace.corridor`). Both end points of the body's axis must lie on the free side,
+the body's radius plus a margin away: ``corridor_margin`` + κ σ_n, where σ_n is the
+estimate's standard deviation along the boundary's normal (the Kalman filter's covariance,
+κ = ``corridor_sigmas``), at most ``corridor_share`` of the channel's free width: a chance
+constraint, tightened by what the controller does not know. So the body's ends, and with them
+its heading, are kept off the critical wall. The other boundaries get no constraint: contact
+with them is allowed.
 
 Both are soft: residuals √w · min(0, g) in the least-squares cost (weights ``heading_weight``
 per mT² and ``corridor_weight`` per mm² of violation), so every tick's problem stays feasible
@@ -102,8 +103,8 @@ FloatArray = NDArray[np.float64]
 STATE_SCALE = np.array([1e-3, 1e-3, 1.0, 1e-3, 1e-3, 1.0])
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 NX = 6
-#: corridor half-planes per stage (the critical boundary's and the nearest other's)
-N_PLANES = 2
+#: corridor half-planes per stage (the critical boundary's; FreeSpace.corridor)
+N_PLANES = 1
 #: per-stage parameters: the reference pose (3, scaled) and the half-planes (nx, ny, c mm)
 NP = 3 + 3 * N_PLANES
 
@@ -125,10 +126,9 @@ class NMPCConfig:
     min_aligned_field: float | None = None
     heading_weight: float = 100.0  # per mT² below B_min; 0 switches the term off
     # corridor (with a FreeSpace): the body's ends clear of the boundaries
-    corridor_weight: float = 100.0  # per mm² of violation, critical boundary
-    # per mm², the other boundaries; 0: none (contact with them is allowed, and resting on
-    # the far wall is what keeps the body off the critical one when the estimate is poor)
-    corridor_other_weight: float = 0.0
+    # per mm² of violation, critical boundary (the others get none: contact with them is
+    # allowed, and resting on the far wall keeps the body off the critical one)
+    corridor_weight: float = 100.0
     # m, from the critical boundary before the chance term: on the spine at 3 Hz, 2 mm, seeds
     # 1–3: 0.2 mm touched the anterior wall in 3 of 3 trials, 0.5 mm in none (1 of 7 with
     # seeds 4–7 too), 0.7 mm in 3 of 4 (pressing the body into the posterior wall)
@@ -211,16 +211,10 @@ class NMPC(Planner):
         else:
             positions = np.vstack([state[:2], plan[1:, :2] * 1e-3, plan[-1:, :2] * 1e-3])
         cfg = self.config
-        margin = np.full(N + 1, cfg.corridor_margin)
-        if self.position_covariance is not None and fs.critical is not None:
-            _, n = fs.nearest(positions, [fs.critical])
-            var = np.einsum("ki,ij,kj->k", n, self.position_covariance, n)
-            extra = cfg.corridor_sigmas * np.sqrt(np.maximum(var, 0.0))
-            # never more than a share of the free width: a margin the channel cannot give
-            # would press the body into the other wall and fight it
-            free = fs.free_width(positions) - fs.diameter - 2 * cfg.corridor_margin
-            margin = margin + np.minimum(extra, cfg.corridor_share * np.maximum(free, 0.0))
-        planes = fs.half_planes(positions, margin, cfg.corridor_margin)
+        planes[:, 0] = fs.corridor(
+            positions, self.position_covariance, cfg.corridor_margin, cfg.corridor_sigmas,
+            cfg.corridor_share,
+        )  # fmt: skip
         planes[:, :, 2] /= 1e-3  # c in mm, as the scaled positions
         return planes
 
@@ -308,18 +302,17 @@ class OCP:
         fs = nmpc.free_space
         half_axis = (fs.half_axis if fs is not None else 0.0) / 1e-3  # mm
         ends = [X[:2] + e * ca.vertcat(ca.cos(X[2]), ca.sin(X[2])) for e in (-half_axis, half_axis)]
-        weights = (cfg.corridor_weight, cfg.corridor_other_weight)  # plane 0: the critical
         gaps = [
-            np.sqrt(weights[j]) * (par[3 + 3 * j] * e[0] + par[4 + 3 * j] * e[1] - par[5 + 3 * j])
+            np.sqrt(cfg.corridor_weight)
+            * (par[3 + 3 * j] * e[0] + par[4 + 3 * j] * e[1] - par[5 + 3 * j])
             for j in range(N_PLANES)
             for e in ends
-            if weights[j] > 0
         ]
         self.corridor_gap = ca.Function("corridor_gap", [X, par], [ca.vertcat(*gaps)])
         self.corridor_residual = ca.Function(
             "corridor_residual", [X, par], [ca.fmin(0, ca.vertcat(*gaps))]
         )
-        self.has_corridor = fs is not None and bool(gaps)
+        self.has_corridor = fs is not None and fs.critical is not None and cfg.corridor_weight > 0
 
     @staticmethod
     def _pose_residual(X: Any, par: Any, qp: float, qa: float) -> ca.Function:
