@@ -65,9 +65,15 @@ Chain = Annotated[list[Piece], Field(min_length=1)]
 
 
 def chain_points(pieces: list[Piece]) -> FloatArray:
-    """The polyline of a chain of pieces, mm, shape (n, 2)."""
+    """The polyline of a chain of pieces, mm, shape (n, 2).
+
+    A point repeating the one before (where one piece ends and the next begins) is dropped:
+    a zero-length wall segment has no direction, and its NaN distances hid every wall from
+    the simulated plant's contact test."""
     out = [p.arc.points() if isinstance(p, ArcPiece) else np.asarray(p.points) for p in pieces]
-    return np.concatenate(out).astype(np.float64)
+    pts = np.concatenate(out).astype(np.float64)
+    keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-9])
+    return pts[keep]
 
 
 class PhantomSpec(_Strict):

@@ -118,3 +118,11 @@ def test_second_phantom_is_a_valid_outline_with_a_path_inside() -> None:
     assert phantom.path is not None
     assert all(fs.contains(p) for p in phantom.path[1:-1])
     assert scene.critical == "medial"
+
+
+def test_phantom_walls_have_no_zero_length_segments() -> None:
+    """Boundaries of several pieces share their joints; a repeated point would make a
+    zero-length wall, whose NaN distances hid every wall from the plant's contact test."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "channel_bends.yaml")
+    seg = phantom.walls().segments
+    assert np.all(np.hypot(*(seg[:, 1] - seg[:, 0]).T) > 1e-9)
