@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from analysis import stats
+from analysis import metrics, stats
 from analysis.load import CONDITIONS, Dataset
 
 #: the contract's columns, first and in this order (ARCHITECTURE.md, "CONTRACT: results table")
@@ -193,7 +193,8 @@ def headlines(data: Dataset, comparisons: pd.DataFrame | None = None) -> list[He
         pos_ok = spine["rms_position_mm"].mean() <= PAPER["spine_position_mm"]
         deg_ok = spine["rms_orientation_deg"].mean() <= PAPER["spine_orientation_deg"]
         clear = spine["min_clearance_mm"]
-        clear_ok = bool(clear.notna().all() and (clear > 0).all())
+        # clear: no trial's body within the contact distance of the boundary
+        clear_ok = bool(clear.notna().all() and (clear > metrics.CONTACT_MM).all())
         parts = [pos_ok, deg_ok, clear_ok]
         out.append(
             Headline(

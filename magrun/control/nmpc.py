@@ -611,6 +611,9 @@ class RTISolver(_Backend):
             [s, v, ref],
             [s_next, ca.jacobian(s_next, s), ca.jacobian(s_next, v), r,
              ca.jacobian(r, s), ca.jacobian(r, v)],
+            # common subexpressions: the heading residual's derivatives repeat the field's
+            # derivatives the dynamics' Jacobian already has
+            {"cse": True},
         )  # fmt: skip
         rN = ca.vertcat(ocp.pose_residual["terminal"](X, ref), ocp.corridor(X, ref))
         terminal = ca.Function("rti_terminal", [s, ref], [rN, ca.jacobian(rN, s)])
