@@ -373,15 +373,19 @@ def envelope(data: Dataset, protocol: str) -> Figure:
             norm = mcolors.TwoSlopeNorm(0.0, -span, span)
         image = ax.imshow(values, cmap=cmap, norm=norm, aspect="auto")
         fig.colorbar(image, ax=ax, label=label)
+        ax.grid(False)
         for i in range(values.shape[0]):
             for j in range(values.shape[1]):
                 if np.isfinite(values[i, j]):
-                    ax.text(j, i, f"{values[i, j]:.2f}", ha="center", va="center", fontsize=8)
+                    r, g, b, _ = image.cmap(image.norm(values[i, j]))
+                    ink = "white" if 0.299 * r + 0.587 * g + 0.114 * b < 0.5 else "black"
+                    text = f"{values[i, j]:.2f}".replace("-0.00", "0.00")
+                    ax.text(j, i, text, ha="center", va="center", fontsize=9, color=ink)
                 k = touched.iat[i, j]
                 if value == "clearance" and np.isfinite(k) and k > 0:
                     ax.text(
-                        j, i + 0.32, f"touched {int(k)}/{int(counts.iat[i, j])}",
-                        ha="center", va="center", fontsize=7,
+                        j, i + 0.25, f"touched {int(k)}/{int(counts.iat[i, j])}",
+                        ha="center", va="center", fontsize=8, color="black",
                     )  # fmt: skip
         ax.set_xticks(range(values.shape[1]), [f"{c:g}" for c in table.columns])
         ax.set_yticks(range(values.shape[0]), [f"{r:g}" for r in table.index])
