@@ -33,9 +33,12 @@ def emulator():
         yield emu
 
 
-def _driver(emu: RigEmulator, watchdog_s: float = 0.1) -> TcpLineDriver:
+def _driver(emu: RigEmulator, watchdog_s: float = 1.0) -> TcpLineDriver:
+    # wide margins: on a loaded machine the emulator's first plant step compiles the Numba
+    # kernel (seconds), and the thread serving the wire waits for the GIL; the watchdog's
+    # timing has tests of its own that name their timeout
     host, port = emu.address
-    driver = TcpLineDriver(host, port)
+    driver = TcpLineDriver(host, port, timeout_s=30.0)
     driver.open(watchdog_s)
     return driver
 
