@@ -12,6 +12,20 @@ currents it applied. With F = H = I::
 
 With no measurement the prediction is the estimate (and P grows by Q). The angle innovation
 is wrapped to (−π, π] by moving the measured θ next to the predicted one before the update.
+
+Where the robot moves in a channel, its position across the channel is known to lie in the
+body's free interval: :meth:`KalmanPoseFilter.truncate` conditions the Gaussian on it
+(density truncation, D. Simon and D. L. Simon, "Constrained Kalman filtering via density
+function truncation for turbofan engine health estimation", Int. J. Systems Science 41(2),
+2010). With c = dᵀp the state along a unit direction d, its prior N(ĉ, σ²), σ² = dᵀPd,
+restricted to ĉ + [lo, hi], has mean ĉ + δ and variance σ'² (the truncated normal's
+moments); the whole state follows by the regression of p on c, exact for a Gaussian::
+
+    p̂ ← p̂ + P d δ / σ²,      P ← P − P d dᵀ P (1 − σ'²/σ²) / σ²
+
+A 2 mm measurement in a channel whose free width is 2 mm carries little across-channel
+information that the walls do not; the truncated mean keeps the estimate off the edge of
+that interval where the walls say the robot is unlikely to be.
 With measurements every tick, P⁻ converges to the solution of the discrete Riccati equation
 ``P = P − P (P + R)⁻¹ P + Q`` (tests/test_estimation.py checks it).
 
@@ -28,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
+from scipy.stats import truncnorm
 
 from magrun.control.base import Estimator, angle_near
 
@@ -93,6 +108,28 @@ class KalmanPoseFilter(Estimator):
         # projecting the estimate onto the free space (a state constraint): the mean moves,
         # the covariance is kept (a conservative choice: the projection only removes states)
         self.kf.x = np.asarray(pose, dtype=np.float64).reshape(3, 1).copy()
+
+    def truncate(self, direction: FloatArray, lo: float, hi: float) -> FloatArray:
+        """Condition the estimate on its component along ``direction`` lying within
+        ``[lo, hi]`` of where it is now (module doc): the truncated normal's mean and variance
+        along ``direction`` (a 3-vector of the state x, y, θ, unit length), the rest by
+        regression. Returns the new estimate."""
+        d = np.asarray(direction, dtype=np.float64).reshape(3, 1)
+        P = np.asarray(self.kf.P, dtype=np.float64)
+        var = (d.T @ P @ d).item()
+        if not (var > 0 and lo <= 0 <= hi and hi > lo):
+            return self.kf.x.ravel().copy()
+        sigma = math.sqrt(var)
+        # the truncated normal of the offset from the current mean, in units of sigma
+        a, b = lo / sigma, hi / sigma
+        mean, variance = truncnorm.stats(a, b, moments="mv")
+        shift, ratio = float(mean) * sigma, float(variance)
+        if not (math.isfinite(shift) and math.isfinite(ratio)):
+            return self.kf.x.ravel().copy()
+        gain = P @ d / var
+        self.kf.x = self.kf.x + gain * shift
+        self.kf.P = P - (P @ d @ d.T @ P) * (1.0 - ratio) / var
+        return self.kf.x.ravel().copy()
 
 
 class MeasurementOrPrediction(Estimator):

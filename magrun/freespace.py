@@ -312,6 +312,84 @@ class FreeSpace:
             raise ValueError("the robot's body fits nowhere in this free space")
         return grid
 
+    def across(self, pose: ArrayLike) -> tuple[FloatArray, float, float] | None:
+        """The critical boundary's normal at the body and how far the body can move along it.
+
+        Returns ``(n, lo, hi)``: ``n`` (2,) the unit normal into the free side at the critical
+        boundary's point nearest the body's centre, and ``lo ≤ 0 ≤ hi``, m, the translations
+        along ``n`` within which the body at ``pose`` still fits (:meth:`play`): ``lo`` toward
+        the critical boundary, ``hi`` toward the other side. None without a critical boundary.
+        """
+        if self.critical is None:
+            return None
+        p = np.asarray(pose, dtype=np.float64)
+        _, n = self.nearest(p[:2], [self.critical])
+        lo, hi = self.play(p, n[0])
+        return n[0], lo, hi
+
+    def play(
+        self, pose: ArrayLike, direction: ArrayLike, reach: float = 4e-3
+    ) -> tuple[float, float]:
+        """How far the body at ``pose`` can translate along ``direction`` (a unit 2-vector)
+        each way before it meets a wall, m: ``(lo ≤ 0, hi ≥ 0)``, each at most ``reach``.
+
+        Each disk of the body (radius r = D/2, :func:`~magrun.scene.capsule_disks`) moving as
+        ``c + s·direction`` meets a wall segment where it enters the segment inflated by r, a
+        convex set, so over one interval of s: the hull of where the line crosses the
+        segment's slab and its two end circles. ``lo`` and ``hi`` are the nearest such
+        intervals' ends on either side of 0. A pose that does not fit (a disk on a wall)
+        gets ``(0, 0)``.
+        """
+        p = np.asarray(pose, dtype=np.float64)
+        d = np.asarray(direction, dtype=np.float64)
+        r = self.radius
+        axis = np.array([math.cos(p[2]), math.sin(p[2])])
+        c = p[:2] + capsule_disks(self.half_axis, r)[:, None] * axis  # (m, 2)
+        a, ab, ab2, _ = self._group(tuple(self.boundaries))
+        near = _point_segment(p[:2], a, a + ab) <= self.half_axis + r + reach
+        a, ab, ab2 = a[near], ab[near], ab2[near]
+        if not len(a):
+            return -reach, reach
+        length = np.sqrt(ab2)
+        t = ab / length[:, None]  # along each segment
+        m = np.column_stack([-t[:, 1], t[:, 0]])  # across it
+        w = c[:, None, :] - a[None, :, :]  # (m, n, 2)
+        lo_all, hi_all = np.full(w.shape[:2], np.inf), np.full(w.shape[:2], -np.inf)
+
+        def hull(s0: FloatArray, s1: FloatArray) -> None:
+            ok = s0 <= s1
+            lo_all[:] = np.where(ok, np.minimum(lo_all, s0), lo_all)
+            hi_all[:] = np.where(ok, np.maximum(hi_all, s1), hi_all)
+
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # the slab: |m·(x − a)| < r and 0 ≤ t·(x − a) ≤ |ab|, x = c + s d
+            md, td = m @ d, t @ d
+            wm, wt = np.sum(w * m, axis=-1), np.sum(w * t, axis=-1)
+            across = np.sort(np.stack([(-r - wm) / md, (r - wm) / md]), axis=0)
+            along = np.sort(np.stack([-wt / td, (length - wt) / td]), axis=0)
+            inside_m = np.abs(wm) < r  # direction parallel to the segment: s unbounded
+            inside_t = (wt >= 0) & (wt <= length)
+            a0 = np.where(np.abs(md) > 1e-12, across[0], np.where(inside_m, -np.inf, np.inf))
+            a1 = np.where(np.abs(md) > 1e-12, across[1], np.where(inside_m, np.inf, -np.inf))
+            b0 = np.where(np.abs(td) > 1e-12, along[0], np.where(inside_t, -np.inf, np.inf))
+            b1 = np.where(np.abs(td) > 1e-12, along[1], np.where(inside_t, np.inf, -np.inf))
+            hull(np.maximum(a0, b0), np.minimum(a1, b1))
+            # the end circles: |w − e + s d|² = r², e = 0 (a) or ab (b)
+            for e in (np.zeros_like(ab), ab):
+                we = w - e[None]
+                half_b = we @ d
+                disc = half_b**2 - (np.sum(we * we, axis=-1) - r * r)
+                root = np.sqrt(np.maximum(disc, 0.0))
+                hit = disc >= 0
+                hull(np.where(hit, -half_b - root, np.inf), np.where(hit, -half_b + root, -np.inf))
+        if np.any((lo_all < 0) & (hi_all > 0)):
+            return 0.0, 0.0
+        ahead = lo_all[lo_all >= 0]
+        behind = hi_all[hi_all <= 0]
+        hi = min(float(ahead.min()) if ahead.size else reach, reach)
+        lo = max(float(behind.max()) if behind.size else -reach, -reach)
+        return lo, hi
+
     def clearance(self, pose: ArrayLike, names: list[str] | None = None) -> float:
         """Least distance, m, from the body at ``pose`` to the named boundaries (default:
         all); negative when it overlaps one."""

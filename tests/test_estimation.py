@@ -81,3 +81,42 @@ def test_baseline_estimates_stay_continuous_across_pi(cls: type) -> None:
     for th in headings:
         got = est.update(np.array([0.0, 0.0, math.atan2(math.sin(th), math.cos(th))]), None)
         assert got[2] == pytest.approx(th, abs=1e-12)
+
+
+@pytest.mark.parametrize(("lo", "hi"), [(-1.5e-3, 0.5e-3), (-0.2e-3, 2.0e-3), (-0.3e-3, 0.3e-3)])
+def test_truncation_matches_monte_carlo_conditioning(lo: float, hi: float) -> None:
+    """Conditioning on d·(p − p̂) ∈ [lo, hi] with a correlated P: the filter's mean and
+    covariance against the moments of 400,000 Gaussian samples kept by the same test (to five
+    standard errors of the sample moments)."""
+    kf = KalmanPoseFilter()
+    mean = np.array([1e-3, -2e-3, 0.3])
+    kf.reset(mean)
+    A = np.array([[1.0e-3, 0.2e-3, 0.0], [0.3e-3, 0.8e-3, 0.0], [1e-2, -2e-2, 0.05]])
+    P = A @ A.T
+    kf.kf.P = P.copy()
+    d = np.array([0.6, 0.8, 0.0])
+    est = kf.truncate(d, lo, hi)
+    rng = np.random.default_rng(7)
+    x = rng.multivariate_normal(mean, P, size=400_000)
+    s = (x - mean) @ d
+    kept = x[(s >= lo) & (s <= hi)]
+    se = np.sqrt(np.diag(np.cov(kept.T)) / len(kept))
+    assert np.all(np.abs(est - kept.mean(axis=0)) <= 5 * se)
+    cov = np.cov(kept.T)
+    scale = np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    assert np.all(np.abs(kf.covariance - cov) <= 5 * scale * math.sqrt(2 / len(kept)))
+
+
+def test_truncation_to_a_wide_interval_changes_nothing() -> None:
+    """An interval ±10 σ wide leaves mean and covariance as they were (to 1e-12 relative)."""
+    kf = KalmanPoseFilter()
+    kf.reset(np.array([1e-3, 2e-3, 0.1]))
+    before, P = kf.kf.x.ravel().copy(), kf.covariance
+    sigma = math.sqrt(P[0, 0])
+    assert_allclose(kf.truncate(np.array([1.0, 0.0, 0.0]), -10 * sigma, 10 * sigma), before,
+                    rtol=0, atol=1e-12 * sigma)  # fmt: skip
+    assert_allclose(kf.covariance, P, rtol=1e-12, atol=0)
+
+
+def test_baseline_estimators_keep_no_distribution_to_truncate() -> None:
+    assert MeasurementOrPrediction().truncate(np.array([1.0, 0, 0]), -1e-3, 1e-3) is None

@@ -179,3 +179,84 @@ def test_short_spine_trial_with_exact_feedback_keeps_off_the_critical_wall() -> 
     clear = np.array([fs.clearance(p, [fs.critical]) for p in log.actual])
     assert clear.min() > 0.05e-3
     assert log.rms_position_mm < 0.5
+
+
+def test_play_in_the_square_is_the_distance_to_the_walls() -> None:
+    """The open workspace, body at (x0, 0) along x or along y: its play along ±x is the
+    distance from its tip (half the length) or its side (the radius) to the walls, to 1e-12 m."""
+    h, L, D = 0.05, 0.016, 0.0028
+    fs = FreeSpace.square(h, L, D)
+    reach = 0.2
+    lo, hi = fs.play(np.array([0.01, 0.0, 0.0]), np.array([1.0, 0.0]), reach=reach)
+    assert hi == pytest.approx(h - 0.01 - L / 2, abs=1e-12)
+    assert lo == pytest.approx(-(h + 0.01 - L / 2), abs=1e-12)
+    lo, hi = fs.play(np.array([0.01, 0.0, math.pi / 2]), np.array([1.0, 0.0]), reach=reach)
+    assert hi == pytest.approx(h - 0.01 - D / 2, abs=1e-12)
+    assert lo == pytest.approx(-(h + 0.01 - D / 2), abs=1e-12)
+    assert fs.play(np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.0]), reach=0.01) == (-0.01, 0.01)
+
+
+def _disks_clear(fs: FreeSpace, pose: np.ndarray) -> float:
+    """Least distance of the body's disks (as play places them) to any wall, less the radius:
+    a brute-force check over every segment."""
+    from magrun.freespace import _point_segment
+    from magrun.scene import capsule_disks
+
+    axis = np.array([math.cos(pose[2]), math.sin(pose[2])])
+    disks = pose[:2] + capsule_disks(fs.half_axis, fs.radius)[:, None] * axis
+    segs = fs.walls().segments
+    d = _point_segment(disks[:, None, :], segs[None, :, 0], segs[None, :, 1])
+    return float(d.min() - fs.radius)
+
+
+@settings(max_examples=100, deadline=None)
+@given(s=st.floats(0.0, 1.0), offset=st.floats(-1.0, 1.0), tilt=st.floats(-0.3, 0.3),
+       turn=st.floats(0.0, 2 * math.pi))  # fmt: skip
+def test_play_ends_where_the_body_meets_a_wall(spine: FreeSpace, s, offset, tilt, turn) -> None:
+    """Poses along the spine's channel (any point of the path, off it by up to 1 mm, tilted up
+    to 17°) and any direction: the body moved 1 µm short of either end of its play still
+    clears every wall, and 1 µm past an end that is not the reach it meets one (brute force
+    over every disk and segment)."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    assert phantom.path is not None
+    path = phantom.path
+    i = min(int(s * (len(path) - 2)), len(path) - 2)
+    a, b = path[i], path[i + 1]
+    heading = math.atan2(*(b - a)[::-1])
+    normal = np.array([-math.sin(heading), math.cos(heading)])
+    pose = np.array([*(a + offset * 1e-3 * normal), heading + tilt])
+    if _disks_clear(spine, pose) < 0:
+        return  # the body does not fit there: play is (0, 0), tested below
+    direction = np.array([math.cos(turn), math.sin(turn)])
+    reach = 4e-3
+    lo, hi = spine.play(pose, direction, reach=reach)
+    assert lo <= 0 <= hi
+    for end, sign in ((hi, 1.0), (lo, -1.0)):
+        inside = pose.copy()
+        inside[:2] += (end - sign * 1e-6) * direction
+        assert _disks_clear(spine, inside) >= -1e-9
+        if abs(end) < reach:
+            past = pose.copy()
+            past[:2] += (end + sign * 1e-6) * direction
+            assert _disks_clear(spine, past) < 0
+
+
+def test_truncation_moves_an_estimate_off_the_far_wall(spine: FreeSpace) -> None:
+    """At a measurement, a Kalman estimate 0.1 mm from the posterior wall, with 1 mm of
+    spread across the channel, moves toward the channel's middle (the walls make the far edge
+    unlikely); without a measurement it stays where it is."""
+    c = Controller("proposed", KalmanPoseFilter(), _Still(), 0.04, 30.0, 1e4, 8, spine)
+    # radius 13.8 mm around the dural sac's centre (-6, 0): the body 0.1 mm off the posterior wall
+    pose = np.array([-6e-3 + 13.8e-3, 0.0, math.pi / 2])
+    across = spine.across(pose)
+    assert across is not None
+    hi = across[2]
+    assert hi == pytest.approx(0.1e-3, abs=2e-5)
+    c.reset(pose)
+    c.estimator.kf.P = np.diag([1e-6, 1e-6, 1e-3])
+    ref = np.tile(pose, (21, 1))
+    held = c.step(None, ref).estimate
+    np.testing.assert_allclose(held, pose, rtol=0, atol=1e-12)
+    moved = c.step(pose, ref).estimate  # a measurement right at the estimate: no innovation
+    assert -1.0e-3 < moved[0] - pose[0] < -0.3e-3  # toward the anterior wall, i.e. inward
+    assert spine.clearance(moved) > spine.clearance(pose)

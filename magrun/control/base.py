@@ -4,6 +4,8 @@ A :class:`Controller` is an estimator and a planner behind one ``step``::
 
     measured pose or None ─► Estimator(measured, last prediction) ─► pose estimate
         estimate ─► FreeSpace.project (the workspace or phantom the protocol declares)
+        at a measurement, in a phantom: Estimator.truncate to the body's free interval
+            across the critical boundary (FreeSpace.across)
         velocity = the prediction's (model velocity), or (estimate − previous estimate) / Δt
     [estimate, velocity], reference window, previous currents ─► Planner ─► currents, prediction
         safety: clamp_currents (|I| ≤ I_max, |ΔI| ≤ slew Δt, non-finite → 0) on every tick
@@ -102,6 +104,12 @@ class Estimator(ABC):
     def constrain(self, pose: FloatArray) -> None:  # noqa: B027 (optional hook)
         """The estimate was moved to ``pose`` (into the free space): start from there."""
 
+    def truncate(self, direction: FloatArray, lo: float, hi: float) -> FloatArray | None:
+        """Condition the estimate on its component along ``direction`` (3,) lying within
+        ``[lo, hi]`` of where it is; the new estimate, or None where the estimator keeps no
+        distribution to condition (the default)."""
+        return None
+
 
 class Planner(ABC):
     """Turns a state estimate and a reference window into currents."""
@@ -187,15 +195,34 @@ class Controller:
         self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
 
+    def _into_free_space(self, estimate: FloatArray, fs: FreeSpace, measured: bool) -> FloatArray:
+        """The estimate projected into the free space; at a measurement, also conditioned on
+        the body's free interval across the critical boundary (where the estimator keeps a
+        distribution: :meth:`Estimator.truncate`)."""
+        inside = fs.project(estimate)
+        if not np.array_equal(inside, estimate):
+            estimate = inside
+            self.estimator.constrain(estimate)
+        if not measured:
+            return estimate
+        across = fs.across(estimate)
+        if across is None:
+            return estimate
+        n, lo, hi = across
+        truncated = self.estimator.truncate(np.array([n[0], n[1], 0.0]), lo, hi)
+        if truncated is None:
+            return estimate
+        inside = fs.project(truncated)
+        if not np.array_equal(inside, truncated):
+            self.estimator.constrain(inside)
+        return inside
+
     def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
         """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
         z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
         estimate = self.estimator.update(z, self._prediction)
         if self.free_space is not None:
-            inside = self.free_space.project(estimate)
-            if not np.array_equal(inside, estimate):
-                estimate = inside
-                self.estimator.constrain(estimate)
+            estimate = self._into_free_space(estimate, self.free_space, z is not None)
         if self.velocity == "model" and self._predicted_velocity is not None:
             velocity = self._predicted_velocity
         else:
