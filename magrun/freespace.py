@@ -4,15 +4,20 @@ The controllers are given the workspace geometry the protocol declares, as a
 :class:`FreeSpace`: the boundary polylines (a phantom's, in file order closing its outline;
 for the open workspace the square's four walls), which of them is ``critical``, and the
 robot's body, a capsule of length L and diameter D (a segment of length L − D, radius D/2).
-Two things are built on it:
+Three things are built on it:
 
 - :meth:`FreeSpace.project`: a pose moved into the space the body can occupy (inside the
   outline, the body clear of every boundary). The controller passes every estimate through
   it, so an estimate cannot leave the channel, whatever the measurements or the planner do.
-- :meth:`FreeSpace.half_planes`: at given positions, the nearest point of the critical
-  boundary and of the other boundaries, as half-planes ``n·p ≥ c`` that the body's two end
-  points must satisfy: the NMPC's corridor constraints (:mod:`magrun.control.nmpc`). With
-  the body's ends on the free side, its heading is limited where the channel is narrow.
+- :meth:`FreeSpace.across`: at a pose, the critical boundary's normal and how far the body
+  can move along it each way before it meets a wall (:meth:`FreeSpace.play`): the free
+  interval the Kalman filter conditions its estimate on at each measurement
+  (:meth:`magrun.estimation.KalmanPoseFilter.truncate`).
+- :meth:`FreeSpace.corridor`: at given positions, the critical boundary's nearest point as
+  a half-plane ``n·p ≥ c`` that the body's two end points must satisfy, its margin
+  tightened by the estimate's uncertainty: the NMPC's corridor constraint
+  (:mod:`magrun.control.nmpc`). With the body's ends on the free side, its heading is limited
+  where the channel is narrow.
 
 All lengths in metres.
 
@@ -141,8 +146,9 @@ class FreeSpace:
         sigmas: float,
         share: float,
     ) -> FloatArray:
-        """The NMPC's corridor at each position: the critical boundary's row of
-        :meth:`half_planes`, shape (m, 3), with the margin
+        """The NMPC's corridor at each position: half-planes ``(nx, ny, c)``, shape (m, 3),
+        from the critical boundary's nearest point q and its normal n into the free side: the
+        body's end points e must satisfy ``n·e ≥ c = n·q + D/2 + margin'``, with the margin
         ``margin + min(sigmas · σ_n, share · free width)`` (σ_n: the position ``covariance``'s
         standard deviation along the boundary's normal; free width: :meth:`free_width` less
         the body's diameter and twice ``margin``); :data:`INACTIVE` rows without a critical
@@ -160,29 +166,6 @@ class FreeSpace:
             extra = np.minimum(sigmas * np.sqrt(np.maximum(var, 0.0)), share * np.maximum(free, 0))
         out[:, :2] = n1
         out[:, 2] = np.sum(n1 * q1, axis=1) + self.radius + margin + extra
-        return out
-
-    def half_planes(
-        self, positions: ArrayLike, critical_margin: ArrayLike = 0.0, margin: float = 0.0
-    ) -> FloatArray:
-        """Corridor half-planes at each position: shape (m, 2, 3), rows ``(nx, ny, c)``.
-
-        Row 0 is the critical boundary's (:data:`INACTIVE` without one), row 1 the nearest
-        other boundary's. The body's end points e must satisfy ``n·e ≥ c``, where
-        ``c = n·q + D/2 + margin`` (``critical_margin``, per position or one number, for the
-        critical boundary): the body then keeps that margin from the boundary near q.
-        """
-        p = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-        out = np.empty((len(p), 2, 3))
-        out[:] = INACTIVE
-        others = [k for k in self.boundaries if k != self.critical]
-        groups = [([self.critical] if self.critical else [], critical_margin), (others, margin)]
-        for row, (names, extra) in enumerate(groups):
-            if not names:
-                continue
-            q, n = self.nearest(p, names)
-            out[:, row, :2] = n
-            out[:, row, 2] = np.sum(n * q, axis=1) + self.radius + np.asarray(extra)
         return out
 
     def free_width(self, positions: ArrayLike) -> FloatArray:

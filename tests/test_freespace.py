@@ -59,19 +59,21 @@ def test_projection_keeps_a_pose_that_fits(spine: FreeSpace) -> None:
     np.testing.assert_array_equal(spine.project(pose), pose)
 
 
-def test_half_planes_face_into_the_channel(spine: FreeSpace) -> None:
-    """At points of the path, each half-plane's normal points from its wall into the channel,
-    and c puts the body's edge D/2 + margin from the wall: the path's points satisfy the
-    anterior plane with the clearance the geometry gives (radius 13.4 vs 10.5 mm)."""
+def test_corridor_faces_into_the_channel(spine: FreeSpace) -> None:
+    """At points of the path, the corridor's normal points from the anterior wall into the
+    channel and c puts the body's edge D/2 (+ margin) from the wall: the path's points
+    satisfy it with the clearance the geometry gives (radius 13.4 vs 10.5 mm); the nearest
+    posterior point's normal faces the other way, 2.1 mm off; the free width is 5 mm."""
     phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
     assert phantom.path is not None
     pts = phantom.path[10:150:20]
-    planes = spine.half_planes(pts, critical_margin=0.0, margin=0.0)
-    gap = np.sum(planes[:, 0, :2] * pts, axis=1) - planes[:, 0, 2]
+    planes = spine.corridor(pts, None, margin=0.0, sigmas=1.0, share=1.0)
+    gap = np.sum(planes[:, :2] * pts, axis=1) - planes[:, 2]
     # the centre is 13.4 − 10.5 = 2.9 mm from the anterior arc; the plane asks for D/2
     np.testing.assert_allclose(gap, 2.9e-3 - spine.radius, atol=2e-5)
-    gap_post = np.sum(planes[:, 1, :2] * pts, axis=1) - planes[:, 1, 2]
-    np.testing.assert_allclose(gap_post, 2.1e-3 - spine.radius, atol=2e-5)
+    q, n = spine.nearest(pts, ["posterior"])
+    np.testing.assert_allclose(np.sum(n * planes[:, :2], axis=1), -1.0, atol=1e-3)
+    np.testing.assert_allclose(np.sum(n * (pts - q), axis=1), 2.1e-3, atol=2e-5)
     np.testing.assert_allclose(spine.free_width(pts), 5e-3, atol=2e-5)
 
 
