@@ -262,3 +262,10 @@ def test_truncation_moves_an_estimate_off_the_far_wall(spine: FreeSpace) -> None
     moved = c.step(pose, ref).estimate  # a measurement right at the estimate: no innovation
     assert -1.0e-3 < moved[0] - pose[0] < -0.3e-3  # toward the anterior wall, i.e. inward
     assert spine.clearance(moved) > spine.clearance(pose)
+
+
+def test_open_workspace_has_no_interval_to_condition_on() -> None:
+    """Without a critical boundary (the open workspace) there is nothing across: the
+    estimators are left as they are."""
+    fs = FreeSpace.square(0.05, 0.016, 0.0028)
+    assert fs.across(np.array([0.0, 0.0, 0.3])) is None

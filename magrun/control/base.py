@@ -203,8 +203,8 @@ class Controller:
         if not np.array_equal(inside, estimate):
             estimate = inside
             self.estimator.constrain(estimate)
-        if not measured:
-            return estimate
+        if not measured or self.estimator.covariance is None:
+            return estimate  # nothing to condition
         across = fs.across(estimate)
         if across is None:
             return estimate
