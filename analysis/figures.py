@@ -320,7 +320,8 @@ def phantom(data: Dataset, protocol: str) -> Figure:
         title=f"{protocol}, trial {row['trial']}: RMS {row['rms_position_mm']:.2f} mm, "
         f"{row['rms_orientation_deg']:.1f}°",
     )  # fmt: skip
-    ax.legend(fontsize=8, loc="upper right")
+    # below the axes: inside, it covers whatever part of the phantom lies in that corner
+    fig.legend(fontsize=8, loc="outside lower center", ncols=4)
     return fig
 
 
