@@ -13,6 +13,9 @@ currents it applied. With F = H = I::
 With no measurement the prediction is the estimate (and P grows by Q). The angle innovation
 is wrapped to (−π, π] by moving the measured θ next to the predicted one before the update.
 
+With measurements every tick, P⁻ converges to the solution of the discrete Riccati equation
+``P = P − P (P + R)⁻¹ P + Q`` (tests/test_estimation.py checks it).
+
 Where the robot moves in a channel, its position across the channel is known to lie in the
 body's free interval: :meth:`KalmanPoseFilter.truncate` conditions the Gaussian on it
 (density truncation, D. Simon and D. L. Simon, "Constrained Kalman filtering via density
@@ -26,8 +29,6 @@ moments); the whole state follows by the regression of p on c, exact for a Gauss
 A 2 mm measurement in a channel whose free width is 2 mm carries little across-channel
 information that the walls do not; the truncated mean keeps the estimate off the edge of
 that interval where the walls say the robot is unlikely to be.
-With measurements every tick, P⁻ converges to the solution of the discrete Riccati equation
-``P = P − P (P + R)⁻¹ P + Q`` (tests/test_estimation.py checks it).
 
 Defaults (:class:`KalmanConfig`): measurement σ 1 mm and 3°, process σ 0.3 mm and 2° per
 40 ms tick (the NMPC's one-step prediction error on the simulated plant is ~0.1 mm, plus the

@@ -348,12 +348,12 @@ class FreeSpace:
             # the slab: |m·(x − a)| < r and 0 ≤ t·(x − a) ≤ |ab|, x = c + s d
             md, td = m @ d, t @ d
             wm, wt = np.sum(w * m, axis=-1), np.sum(w * t, axis=-1)
-            across = np.sort(np.stack([(-r - wm) / md, (r - wm) / md]), axis=0)
+            slab = np.sort(np.stack([(-r - wm) / md, (r - wm) / md]), axis=0)
             along = np.sort(np.stack([-wt / td, (length - wt) / td]), axis=0)
             inside_m = np.abs(wm) < r  # direction parallel to the segment: s unbounded
             inside_t = (wt >= 0) & (wt <= length)
-            a0 = np.where(np.abs(md) > 1e-12, across[0], np.where(inside_m, -np.inf, np.inf))
-            a1 = np.where(np.abs(md) > 1e-12, across[1], np.where(inside_m, np.inf, -np.inf))
+            a0 = np.where(np.abs(md) > 1e-12, slab[0], np.where(inside_m, -np.inf, np.inf))
+            a1 = np.where(np.abs(md) > 1e-12, slab[1], np.where(inside_m, np.inf, -np.inf))
             b0 = np.where(np.abs(td) > 1e-12, along[0], np.where(inside_t, -np.inf, np.inf))
             b1 = np.where(np.abs(td) > 1e-12, along[1], np.where(inside_t, np.inf, -np.inf))
             hull(np.maximum(a0, b0), np.minimum(a1, b1))
