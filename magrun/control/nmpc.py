@@ -23,8 +23,8 @@ equilibrium is unstable: linearised, θ̇ = −(m B_∥ / d_r) δθ with B_∥ =
 the moment, so a tilt grows at m|B|/d_r (6–40 s⁻¹ for the drug-delivery capsule) where an
 aligned field pulls it back at the same rate. Between fluoroscopy frames the plan's model says
 the heading is held while the robot flips. Every plan therefore keeps B_∥ ≥ B_min, the robot's
-``min_aligned_field`` (robots.yaml, where its derivation is written): at B_min the heading
-relaxes by e³ within one frame period of the slowest fluoroscopy rate (3 Hz).
+``min_aligned_field`` (robots.yaml, where its derivation is written): at B_min a heading
+error decays by a factor e within one frame period of the slowest fluoroscopy rate (3 Hz).
 
 Corridor
 --------
