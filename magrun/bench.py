@@ -202,12 +202,11 @@ def bench_recorder(
     import tempfile
     from pathlib import Path
 
-    from magrun.control.base import ControllerStatus
     from magrun.control.methods import make_controller
-    from magrun.loop import Tick
     from magrun.realtime import cpu_split, describe_scheduling, loop_placement
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder
+    from magrun.records import ControllerStatus, Tick
 
     frames = _camera_frames(width, height, 8)
     names = tuple(f"coil{i}" for i in range(8))
@@ -506,8 +505,7 @@ def bench_tick(
 _RECORDING_CHILD = """
 import sys, time
 import numpy as np
-from magrun.control.base import ControllerStatus
-from magrun.loop import Tick
+from magrun.records import ControllerStatus, Tick
 from magrun.recorder_process import ProcessRecorder
 from magrun.recording import RecordingSetup, TrialRecorder
 dt, base, writer = float(sys.argv[1]), sys.argv[2], sys.argv[3]

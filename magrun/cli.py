@@ -312,7 +312,8 @@ def track(
     (or, with --camera, the UNet's pose on rendered frames), degraded to --rate-hz with
     N(0, --sigma-mm²) noise as the paper mimics fluoroscopy.
     """
-    from magrun.control.methods import METHODS, make_controller
+    from magrun.control import METHODS
+    from magrun.control.methods import make_controller
     from magrun.loop import run_trial
     from magrun.rigs.sim import SimRig
     from magrun.scene import s_trajectory

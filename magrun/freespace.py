@@ -12,7 +12,7 @@ Three things are built on it:
 - :meth:`FreeSpace.across`: at a pose, the critical boundary's normal and how far the body
   can move along it each way before it meets a wall (:meth:`FreeSpace.play`): the free
   interval the Kalman filter conditions its estimate on at each measurement
-  (:meth:`magrun.estimation.KalmanPoseFilter.truncate`).
+  (:meth:`magrun.control.estimation.KalmanPoseFilter.truncate`).
 - :meth:`FreeSpace.corridor`: at given positions, the critical boundary's nearest point as
   a half-plane ``n·p ≥ c`` that the body's two end points must satisfy, its margin
   tightened by the estimate's uncertainty: the NMPC's corridor constraint

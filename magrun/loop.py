@@ -28,9 +28,10 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.control.base import Controller, ControllerStatus
+from magrun.angles import wrap_angle
+from magrun.control.base import Controller
+from magrun.records import ControllerStatus, Tick
 from magrun.rigs.base import Rig
-from magrun.robot import wrap_angle
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory
 
@@ -97,26 +98,6 @@ class TrialLog:
     @property
     def solve_times(self) -> FloatArray:
         return np.array([s.solve_time for s in self.status])
-
-
-@dataclass(frozen=True)
-class Tick:
-    """Everything one control tick saw and did (SI units), as handed to ``on_tick``."""
-
-    k: int
-    t: float  # s from the trial start
-    actual: FloatArray  # (3,)
-    tracked: FloatArray | None  # camera pose, None when no tracker or the tracker lost it
-    measured: FloatArray | None  # the feedback, None when no fluoroscopy frame arrived
-    estimated: FloatArray
-    predicted: FloatArray | None  # the previous tick's prediction of this tick
-    desired: FloatArray
-    currents: FloatArray  # as applied, A
-    status: ControllerStatus
-    compute_time: float  # s: tracking + feedback + controller, wall clock
-    frame: NDArray[np.uint8] | None = None
-    latency: float = math.nan  # s, the tick's frame to the rig's ack (hardware rigs)
-    safety_stop: str = ""  # the safety layer's reason, once it has tripped
 
 
 def run_trial(

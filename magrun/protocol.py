@@ -45,7 +45,7 @@ from pydantic import (
     model_validator,
 )
 
-from magrun.control.methods import METHODS
+from magrun.control import METHODS
 from magrun.yamlio import load_yaml_model
 
 #: most trials one protocol file may expand to: a sweep beyond it is refused before anything

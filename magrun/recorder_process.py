@@ -47,9 +47,9 @@ from typing import Any
 
 import numpy as np
 
-from magrun.loop import Tick
 from magrun.realtime import lower_priority, pin_thread
 from magrun.recording import Recorder, RecorderStats, RecordingSetup, TrialRecorder
+from magrun.records import Tick
 
 #: bytes of each slot kept for the pickled tick (a tick without its frame is ~2 KB)
 META_BYTES = 16 << 10

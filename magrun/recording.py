@@ -20,7 +20,7 @@ at the end, ``recorder`` (ticks written, dropped, status). The ``.rrd`` also car
 ``/errors/*`` series and a blueprint: the camera view with paths overlaid, the workspace from
 above with its boundaries, and time series of currents and errors.
 
-The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.loop.Tick`; that
+The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.records.Tick`; that
 only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
 files. A full queue drops the tick, counts it, and the count lands in the ``recorder``
 metadata, the manifest and the run summary: never silent. The MCAP writer closes a chunk
@@ -54,8 +54,8 @@ from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 from numpy.typing import NDArray
 
-from magrun.loop import Tick
 from magrun.realtime import lower_priority, pin_thread
+from magrun.records import Tick
 
 FloatArray = NDArray[np.float64]
 

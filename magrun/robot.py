@@ -24,7 +24,8 @@ tests/test_robot.py checks the step against an adaptive stiff integration (Radau
 continuous equations.
 
 The kernel is written once over an ``ops`` namespace (``sin``, ``cos``, ``exp``), so NumPy
-floats, NumPy arrays and CasADi expressions all run the same code.
+floats, NumPy arrays and CasADi expressions (:mod:`magrun.control.symbolic`) all run the
+same code.
 
     >>> from magrun.robot import load_robot
     >>> robot = load_robot("magnet")
@@ -42,7 +43,6 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Literal
 
-import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, RootModel
@@ -54,7 +54,6 @@ Expr = Any
 
 NUMPY_OPS = SimpleNamespace(sin=np.sin, cos=np.cos, exp=np.exp)
 MATH_OPS = SimpleNamespace(sin=math.sin, cos=math.cos, exp=math.exp)  # Python floats: fastest
-CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, exp=ca.exp)
 STATE_NAMES = ("x", "y", "theta", "vx", "vy", "omega")
 
 
@@ -320,36 +319,9 @@ def state_derivative(
     return np.array([x[3], x[4], x[5], acc[0], acc[1], alpha])
 
 
-def casadi_step_function(
-    params: RobotParams,
-    field_and_gradient: Callable[[Expr, Expr], tuple[Expr, Expr]],
-    n_currents: int,
-    dt: float,
-    substeps: int = 2,
-    name: str = "step",
-) -> ca.Function:
-    """``name(x[6], I[n]) -> x_next[6]``: :func:`discrete_step` as an SX CasADi function.
-
-    ``field_and_gradient(p, I)`` is a field model's ``casadi_field_and_gradient``.
-    """
-    x = ca.SX.sym("x", 6)
-    I = ca.SX.sym("I", n_currents)
-
-    def field(px: Expr, py: Expr) -> tuple[Expr, Expr]:
-        B, G = field_and_gradient(ca.vertcat(px, py), I)
-        return [B[0], B[1]], [[G[0, 0], G[0, 1]], [G[1, 0], G[1, 1]]]
-
-    nxt = discrete_step(tuple(x[i] for i in range(6)), field, params, dt, substeps, CASADI_OPS)
-    return ca.Function(name, [x, I], [ca.vertcat(*nxt)], ["x", "I"], ["x_next"])
-
-
 def heading_rate(params: RobotParams, field_along: float) -> float:
     """Rate, 1/s, at which a small heading error relaxes in a field whose component along the
     moment is ``field_along`` (T): the linearised, drag-dominated heading dynamics
     d_r δθ̇ = −m B_∥ δθ. Negative (the error grows) when the field is against the moment."""
     return params.moment * field_along / params.drag_rotation
 
-
-def wrap_angle(a: Any) -> Any:
-    """Angle(s) wrapped to [−π, π)."""
-    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi

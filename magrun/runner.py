@@ -110,10 +110,10 @@ def free_space_of(scene: Scene, robot: Any) -> Any:
 
 
 def _control_config(trial: Trial) -> Any:
+    from magrun.control.estimation import KalmanConfig
     from magrun.control.methods import ControlConfig
     from magrun.control.nmpc import NMPCConfig
     from magrun.control.two_layer import LinearMPCConfig
-    from magrun.estimation import KalmanConfig
     from magrun.robot import load_robot
 
     c = trial.protocol.controller

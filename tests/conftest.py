@@ -17,7 +17,7 @@ from magrun.robot import RobotParams, load_robot
 
 @pytest.fixture(scope="session", autouse=True)
 def compiled_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Compiled CasADi libraries go to this session's own cache (magrun.control.compiled)."""
+    """Compiled CasADi libraries go to this session's own cache (magrun.compiled)."""
     os.environ["MAGRUN_CACHE_DIR"] = str(tmp_path_factory.mktemp("magrun-cache"))
 
 

@@ -202,7 +202,7 @@ def test_control_verbs_reject_bad_input(runner: CliRunner, args: list[str], mess
     assert "Traceback" not in result.output
 
 
-@pytest.mark.filterwarnings("ignore::magrun.control.compiled.CompileWarning")
+@pytest.mark.filterwarnings("ignore::magrun.compiled.CompileWarning")
 def test_bench_nmpc_json(runner: CliRunner, monkeypatch: pytest.MonkeyPatch) -> None:
     """Every variant's figures, and the ratios computed from them (uncompiled: quick to build)."""
     monkeypatch.setenv("MAGRUN_COMPILE", "0")

@@ -9,13 +9,15 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from magrun.control import METHODS
 from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
-from magrun.control.base import Controller, ControllerStatus, ControlOutput, Plan, Planner
-from magrun.control.methods import METHODS, ControlConfig, make_controller
+from magrun.control.base import Controller, ControlOutput, Plan, Planner
+from magrun.control.estimation import MeasurementOrPrediction
+from magrun.control.methods import ControlConfig, make_controller
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import linear_model
-from magrun.estimation import MeasurementOrPrediction
 from magrun.loop import run_trial
+from magrun.records import ControllerStatus
 from magrun.rigs.sim import SimRig
 from magrun.scene import Trajectory, s_trajectory
 

@@ -9,7 +9,7 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.linalg import solve_discrete_are
 
-from magrun.estimation import (
+from magrun.control.estimation import (
     HoldLastMeasurement,
     KalmanConfig,
     KalmanPoseFilter,

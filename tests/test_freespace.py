@@ -13,14 +13,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from magrun.control.base import Controller, ControllerStatus, Plan, Planner
+from magrun.control.base import Controller, Plan, Planner
+from magrun.control.estimation import KalmanPoseFilter
 from magrun.control.methods import make_controller
 from magrun.control.nmpc import NMPC, STATE_SCALE, NMPCConfig
-from magrun.estimation import KalmanPoseFilter
 from magrun.freespace import FreeSpace
 from magrun.loop import run_trial
 from magrun.phantom import load_phantom
 from magrun.protocol import load_protocol
+from magrun.records import ControllerStatus
 from magrun.rigs.sim import SimRig
 from magrun.robot import load_robots
 from magrun.runner import build_scene, free_space_of

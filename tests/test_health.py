@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from magrun.control.base import ControllerStatus
 from magrun.freespace import FreeSpace
 from magrun.health import HealthLimits, longest_run, prediction_error, trial_health
 from magrun.loop import TrialLog
 from magrun.phantom import load_phantom
 from magrun.protocol import load_protocol
+from magrun.records import ControllerStatus
 from magrun.robot import load_robots
 from magrun.runner import build_scene
 

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from magrun.control import compiled as compiled_mod
+from magrun import compiled as compiled_mod
 from magrun.control.nmpc import NMPC, STATE_SCALE, NMPCConfig
 from magrun.field.polynomial import PolynomialField, exponents, monomials
 

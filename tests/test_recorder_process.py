@@ -15,8 +15,6 @@ import pytest
 from mcap.reader import make_reader
 from test_recording import _rrd_rows
 
-from magrun.control.base import ControllerStatus
-from magrun.loop import Tick
 from magrun.realtime import (
     LOOP_RTPRIO,
     WRITER_NICE,
@@ -27,6 +25,7 @@ from magrun.realtime import (
 )
 from magrun.recorder_process import ProcessRecorder
 from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.records import ControllerStatus, Tick
 from magrun.tracking.camera import Camera
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")

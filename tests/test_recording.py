@@ -12,9 +12,8 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
 
-from magrun.control.base import ControllerStatus
-from magrun.loop import Tick
 from magrun.recording import RecordingSetup, TrialRecorder, raw_image, raw_image_bytes
+from magrun.records import ControllerStatus, Tick
 from magrun.tracking.camera import Camera
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")

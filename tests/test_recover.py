@@ -11,9 +11,8 @@ from click.testing import CliRunner
 from mcap.reader import make_reader
 
 from magrun.cli import cli
-from magrun.control.base import ControllerStatus
-from magrun.loop import Tick
 from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.records import ControllerStatus, Tick
 from magrun.recover import recover
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")

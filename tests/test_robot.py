@@ -10,12 +10,12 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy.integrate import solve_ivp
 
+from magrun.control.symbolic import casadi_step_function
 from magrun.field.grid import ChannelGrid
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.robot import (
     RobotParams,
     RobotSpec,
-    casadi_step_function,
     discrete_step,
     load_robots,
     magnetic_wrench,

@@ -19,9 +19,10 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from magrun.cli import cli
 from magrun.control.methods import make_controller
-from magrun.loop import Tick, run_trial
+from magrun.loop import run_trial
 from magrun.protocol import load_protocol
 from magrun.recording import TOPICS, RecordingSetup, TrialRecorder, yaw_of
+from magrun.records import Tick
 from magrun.rigs.sim import SimRig
 from magrun.runner import RunError, local_executor, ray_executor, run_protocol
 from magrun.scene import s_trajectory
@@ -272,7 +273,7 @@ def test_protocol_schema_command_prints_json() -> None:
 
 
 def _tick(k: int) -> Tick:
-    from magrun.control.base import ControllerStatus
+    from magrun.records import ControllerStatus
 
     pose = np.array([1e-3 * k, 0.0, 0.1])
     return Tick(

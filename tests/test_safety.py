@@ -10,9 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from magrun.control.base import Controller, ControllerStatus, Plan, Planner
-from magrun.estimation import MeasurementOrPrediction
+from magrun.control.base import Controller, Plan, Planner
+from magrun.control.estimation import MeasurementOrPrediction
 from magrun.loop import run_trial
+from magrun.records import ControllerStatus
 from magrun.rigs.sim import SimRig
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import s_trajectory

@@ -12,9 +12,9 @@ from numpy.testing import assert_allclose
 
 from magrun.field.grid import ChannelGrid
 from magrun.field.lut import LookupTableFieldModel
-from magrun.rigs.base import clamp_currents
 from magrun.rigs.sim import Perturbation, SimRig
 from magrun.robot import load_robot
+from magrun.safety import clamp_currents
 from magrun.scene import Walls, s_trajectory
 
 currents = st.lists(
@@ -68,8 +68,8 @@ def _reference_advance(rig: SimRig, duration: float) -> None:
     """The plant's step as first written: clamp the ramp and read the grid every sub-step."""
     from functools import partial
 
-    from magrun.rigs.base import clamp_currents
     from magrun.robot import MATH_OPS, discrete_step
+    from magrun.safety import clamp_currents
 
     def field(I: np.ndarray, x: float, y: float) -> tuple[list[float], tuple]:
         v = (I @ rig.grid.unit(x, y)).tolist()

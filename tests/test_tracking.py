@@ -15,9 +15,10 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 from scipy.optimize import least_squares
 
+from magrun.angles import wrap_angle
 from magrun.loop import run_trial
 from magrun.rigs.sim import SimRig
-from magrun.robot import RobotParams, load_robot, load_robots, wrap_angle
+from magrun.robot import RobotParams, load_robot, load_robots
 from magrun.scene import Walls, s_trajectory
 from magrun.tracking.camera import Camera, CameraConfig
 from magrun.tracking.dataset import (

@@ -26,44 +26,18 @@ around them is this one class.
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magrun.angles import wrap_angle
 from magrun.freespace import FreeSpace
-from magrun.rigs.base import clamp_currents
-from magrun.robot import wrap_angle
+from magrun.records import ControllerStatus
+from magrun.safety import clamp_currents
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class ControllerStatus:
-    """How one tick's plan was obtained.
-
-    Attributes
-    ----------
-    solve_time : float
-        Wall time of the planner, s.
-    iterations : int
-        Solver iterations (0 for closed-form planners).
-    success : bool
-        Whether the solver converged (always true for closed-form planners).
-    fallback : str
-        ``""`` when the plan was used, else what replaced it: ``"shifted"`` (the previous
-        plan's next currents) or ``"zero"``.
-    message : str
-        The solver's return status.
-    """
-
-    solve_time: float
-    iterations: int = 0
-    success: bool = True
-    fallback: str = ""
-    message: str = ""
 
 
 @dataclass(frozen=True)
@@ -247,7 +221,3 @@ class Controller:
         self.currents = currents
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
 
-
-def angle_near(angle: float, ref: float) -> float:
-    """``angle`` shifted by a multiple of 2π to lie within π of ``ref``."""
-    return ref + float(wrap_angle(angle - ref)) if math.isfinite(angle) else angle

@@ -20,22 +20,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from functools import cache
 
+from magrun.control import METHODS
 from magrun.control.base import Controller, Estimator, Planner
-from magrun.control.nmpc import NMPC, NMPCConfig
-from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner, PIDConfig, PIDPlanner
-from magrun.estimation import (
+from magrun.control.estimation import (
     HoldLastMeasurement,
     KalmanConfig,
     KalmanPoseFilter,
     MeasurementOrPrediction,
 )
+from magrun.control.nmpc import NMPC, NMPCConfig
+from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner, PIDConfig, PIDPlanner
 from magrun.field.lut import LookupTableFieldModel
 from magrun.field.model import PlanarFieldModel
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.freespace import FreeSpace
 from magrun.robot import RobotParams, load_robot
-
-METHODS = ("proposed", "baseline1", "baseline2", "baseline3", "baseline4", "baseline5")
 
 
 @dataclass(frozen=True)

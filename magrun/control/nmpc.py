@@ -71,7 +71,7 @@ one step. ``magrun bench nmpc`` measures both side by side.
 
 Both evaluate the field through the model's ``casadi_field_and_gradient`` (for the Zernike
 model its monomial form, :mod:`magrun.field.polynomial`), and both run compiled C
-(:mod:`magrun.control.compiled`: the RTI's per-stage functions, IPOPT's NLP callbacks),
+(:mod:`magrun.compiled`: the RTI's per-stage functions, IPOPT's NLP callbacks),
 cached on disk.
 
 On failure (no convergence, non-finite output) the plan falls back to the
@@ -91,11 +91,13 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.control.base import ControllerStatus, Plan, Planner
-from magrun.control.compiled import compiled, shared_library
+from magrun.compiled import compiled, shared_library
+from magrun.control.base import Plan, Planner
+from magrun.control.symbolic import CASADI_OPS
 from magrun.field.model import PlanarFieldModel
 from magrun.freespace import INACTIVE, FreeSpace
-from magrun.robot import CASADI_OPS, RobotParams, discrete_step
+from magrun.records import ControllerStatus
+from magrun.robot import RobotParams, discrete_step
 
 FloatArray = NDArray[np.float64]
 
@@ -414,7 +416,7 @@ class IpoptSolver(_Backend):
     Decision vector: stage by stage (u_k, X_{k+1}), k = 0 … N−1. The NLP is built in MX with
     the stage function as a call node, so CasADi's generated callbacks (objective, gradient,
     constraint Jacobian, Lagrangian Hessian) hold each stage's derivative code once; they are
-    compiled to one shared library (:mod:`magrun.control.compiled`) and IPOPT loads it.
+    compiled to one shared library (:mod:`magrun.compiled`) and IPOPT loads it.
     """
 
     def __init__(self, ocp: OCP) -> None:

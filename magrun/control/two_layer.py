@@ -29,11 +29,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import expm
 
+from magrun.angles import angle_near, wrap_angle
 from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
-from magrun.control.base import ControllerStatus, Plan, Planner, angle_near
+from magrun.control.base import Plan, Planner
 from magrun.control.qp import BoxLeastSquares
 from magrun.field.model import PlanarFieldModel
-from magrun.robot import RobotParams, drag_matrix, wrap_angle
+from magrun.records import ControllerStatus
+from magrun.robot import RobotParams, drag_matrix
 
 FloatArray = NDArray[np.float64]
 

@@ -1,5 +1,5 @@
 """Coil rigs behind one interface: the simulated plant (default) and, later, the hardware rig."""
 
-from magrun.rigs.base import Observation, Rig, clamp_currents
+from magrun.rigs.base import Observation, Rig
 
-__all__ = ["Observation", "Rig", "clamp_currents"]
+__all__ = ["Observation", "Rig"]

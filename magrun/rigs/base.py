@@ -11,8 +11,8 @@ runner drives at the control period::
             rig.advance(dt)                       # simulate (or wait) one control period
 
 ``apply`` is the safety layer every rig shares: non-finite requests become zero, then
-:func:`clamp_currents` enforces the per-coil current limit and the slew limit, and the rig
-returns the currents it will really drive (as lerobot's ``send_action`` does).
+:func:`magrun.safety.clamp_currents` enforces the per-coil current limit and the slew limit,
+and the rig returns the currents it will really drive (as lerobot's ``send_action`` does).
 """
 
 from __future__ import annotations
@@ -26,24 +26,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
-
-
-def clamp_currents(
-    requested: ArrayLike, previous: ArrayLike, max_current: float, max_change: float
-) -> FloatArray:
-    """The currents closest to ``requested`` within the limits.
-
-    The limits are |I| ≤ max_current and |I − previous| ≤ max_change (a slew limit over one
-    period). Non-finite requests are replaced by 0 A (then limited like any other request), so
-    a NaN from a failed solve can never reach an amplifier. All values in A.
-    """
-    req = np.asarray(requested, dtype=np.float64)
-    prev = np.asarray(previous, dtype=np.float64)
-    req = np.where(np.isfinite(req), req, 0.0)
-    lo = np.maximum(-max_current, prev - max_change)
-    hi = np.minimum(max_current, prev + max_change)
-    # previous may itself sit outside a reduced max_current: then lo > hi, go toward the limit
-    return np.clip(req, lo, np.maximum(lo, hi))
 
 
 @dataclass(frozen=True)

@@ -24,10 +24,11 @@ import time
 import numpy as np
 from numpy.typing import ArrayLike
 
-from magrun.rigs.base import FloatArray, Observation, Rig, clamp_currents
+from magrun.rigs.base import FloatArray, Observation, Rig
 from magrun.rigs.cameras import CameraSource
 from magrun.rigs.drivers import CoilDriver
 from magrun.robot import RobotParams
+from magrun.safety import clamp_currents
 from magrun.tracking.camera import Camera
 from magrun.tracking.tracker import Tracker
 

@@ -11,7 +11,7 @@ where the Python plant runs them, and then resumes. ``SimRig(compiled=False)``, 
 plant, is the reference both are tested against (1e-12).
 
 Numba caches the machine code on disk: under ``<magrun cache>/numba`` (see
-:func:`magrun.control.compiled.cache_dir`) unless ``NUMBA_CACHE_DIR`` is set. The first
+:func:`magrun.compiled.cache_dir`) unless ``NUMBA_CACHE_DIR`` is set. The first
 import on a machine compiles it (a few seconds); later processes load it.
 """
 
@@ -23,7 +23,7 @@ import os
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.control.compiled import cache_dir
+from magrun.compiled import cache_dir
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
 

@@ -42,8 +42,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid, GridCells, HeldField
-from magrun.rigs.base import Observation, Rig, clamp_currents
+from magrun.rigs.base import Observation, Rig
 from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
+from magrun.safety import clamp_currents
 from magrun.scene import Walls, capsule_disks
 from magrun.tracking.camera import Camera, CameraConfig
 from magrun.tracking.render import Renderer

@@ -24,7 +24,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from magrun.robot import RobotParams, wrap_angle
+from magrun.angles import wrap_angle
+from magrun.robot import RobotParams
 from magrun.scene import Walls
 from magrun.tracking.camera import DEFAULT_CAMERA, Camera, CameraConfig
 from magrun.tracking.dataset import channel_walls

@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magrun.robot import wrap_angle
+from magrun.angles import wrap_angle
 
 FloatArray = NDArray[np.float64]
 

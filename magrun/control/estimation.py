@@ -45,7 +45,8 @@ from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
 from scipy.stats import truncnorm
 
-from magrun.control.base import Estimator, angle_near
+from magrun.angles import angle_near
+from magrun.control.base import Estimator
 
 FloatArray = NDArray[np.float64]
 

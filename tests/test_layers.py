@@ -1,0 +1,43 @@
+"""The layering's runtime side: what a light command loads. (`lint-imports` checks the import
+graph itself against the contracts in pyproject.toml; this checks what really gets imported,
+function-level imports included, in a fresh interpreter.)"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+HEAVY = ("casadi", "torch", "cv2", "rerun", "mcap")
+
+
+def loaded_after(code: str) -> list[str]:
+    """The heavy packages in sys.modules after running ``code`` in a fresh interpreter."""
+    found = f"' '.join(m for m in {HEAVY!r} if m in sys.modules)"
+    probe = f"{code}\nimport sys\nprint()\nprint({found})"
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, check=True
+    )
+    return out.stdout.splitlines()[-1].split()  # the probe's line comes last
+
+
+def test_validating_protocols_loads_no_solver_tracker_or_recorder() -> None:
+    code = (
+        "from magrun.cli import cli\n"
+        "try:\n"
+        "    cli(['validate', 'protocols/spine.yaml', 'protocols/rate.yaml'],"
+        " standalone_mode=False)\n"
+        "except SystemExit as e:\n"
+        "    assert not e.code, e.code\n"
+    )
+    assert loaded_after(code) == []
+
+
+def test_the_recorder_loads_no_solver() -> None:
+    assert "casadi" not in loaded_after("import magrun.recording, magrun.recorder_process")
+
+
+def test_the_probe_sees_a_heavy_import() -> None:
+    """The check above can fail: building a controller loads CasADi."""
+    assert "casadi" in loaded_after("import magrun.control.methods")
