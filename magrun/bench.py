@@ -456,16 +456,18 @@ def bench_tick(
     from magrun.control.methods import make_controller
     from magrun.protocol import load_protocol
     from magrun.robot import load_robot
-    from magrun.runner import _control_config, _make_rig, build_scene
+    from magrun.runner import _make_rig, build_scene
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
     from magrun.tracking.tracker import Tracker
+    from magrun.trial import control_config
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     protocol = load_protocol(protocol_file)
     trial = next(t for t in protocol.expand() if t.method == method)
     scene = build_scene(protocol)
-    controller = make_controller(method, load_robot(protocol.robot), _control_config(trial))
+    cfg = control_config(protocol.controller, protocol.robot, trial.condition)
+    controller = make_controller(method, load_robot(protocol.robot), cfg)
     rig = _make_rig("sim", protocol.robot, scene.walls, trial.seed, True)
     tracker = Tracker.default(rig.camera, rig.nominal_robot)
     mimic = FluoroscopyMimic(25.5, 0.0, seed=trial.seed)

@@ -315,10 +315,12 @@ def track(
     from magrun.control import METHODS
     from magrun.control.methods import make_controller
     from magrun.loop import run_trial
+    from magrun.protocol import ControllerSettings
     from magrun.rigs.sim import SimRig
     from magrun.scene import s_trajectory
     from magrun.tracking.camera import CameraConfig
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
+    from magrun.trial import control_config
 
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -333,7 +335,12 @@ def track(
     results = []
     for method in methods or METHODS:
         try:
-            controller = make_controller(method, robot)
+            # the tuning `magrun run` gives this condition (a protocol's default controller
+            # settings, at this command's 25 Hz)
+            cfg = control_config(
+                ControllerSettings(rate_hz=25.0), robot, {"noise_sigma_mm": sigma_mm}
+            )
+            controller = make_controller(method, robot, cfg)
             rig = SimRig.default(robot=robot, seed=seed, camera=CameraConfig() if camera else None)
         except KeyError as exc:
             raise InputError(str(exc).strip("'\"")) from exc

@@ -109,42 +109,6 @@ def free_space_of(scene: Scene, robot: Any) -> Any:
     return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
 
 
-def _control_config(trial: Trial) -> Any:
-    from magrun.control.estimation import KalmanConfig
-    from magrun.control.methods import ControlConfig
-    from magrun.control.nmpc import NMPCConfig
-    from magrun.control.two_layer import LinearMPCConfig
-    from magrun.robot import load_robot
-
-    c = trial.protocol.controller
-    k = c.kalman
-    if k.measurement_sigma_mm == "condition":
-        sigma_mm = max(float(trial.condition.get("noise_sigma_mm") or 0.0), k.tracker_sigma_mm)
-    else:
-        sigma_mm = k.measurement_sigma_mm
-    sigma_deg = max(k.measurement_sigma_deg, float(trial.condition.get("noise_sigma_deg") or 0.0))
-    measured = load_robot(trial.protocol.robot).prediction_sigma  # checked by the protocol
-    process_m = (
-        measured[0] if measured and k.process_sigma_mm == "robot"
-        else float(k.process_sigma_mm) * 1e-3
-    )  # fmt: skip
-    process_rad = (
-        measured[1] if measured and k.process_sigma_deg == "robot"
-        else math.radians(float(k.process_sigma_deg))
-    )  # fmt: skip
-    return ControlConfig(
-        dt=1.0 / c.rate_hz,
-        nmpc=NMPCConfig(horizon=c.horizon),
-        linear_mpc=LinearMPCConfig(horizon=c.horizon),
-        kalman=KalmanConfig(
-            measurement_position=sigma_mm * 1e-3,
-            measurement_angle=math.radians(sigma_deg),
-            process_position=process_m,
-            process_angle=process_rad,
-        ),
-    )
-
-
 @dataclass(frozen=True)
 class HardwareSpec:
     """The real rig (``--rig hardware``): a coil driver URL and a camera source.
@@ -214,6 +178,7 @@ def execute_trial(
     from magrun.safety import SafetyConfig, SafetyLayer
     from magrun.tracking.fluoroscopy import FluoroscopyMimic
     from magrun.tracking.tracker import Tracker
+    from magrun.trial import control_config
 
     entry = manifest_entry(trial)
     if interrupt.requested() is not None:
@@ -227,7 +192,7 @@ def execute_trial(
         protocol = trial.protocol
         scene = build_scene(protocol)
         robot = load_robot(protocol.robot)
-        cfg = _control_config(trial)
+        cfg = control_config(trial.protocol.controller, trial.protocol.robot, trial.condition)
         free_space = free_space_of(scene, robot)
         controller = make_controller(trial.method, robot, cfg, free_space=free_space)
         the_rig = _make_rig(

@@ -420,3 +420,37 @@ def test_bench_tick_json(runner: CliRunner) -> None:
     stages = [doc[f"{s}_ms"] for s in ("render", "track", "control", "plant")]
     assert all(v > 0 for v in stages)
     assert doc["sum_of_medians_ms"] == pytest.approx(sum(stages))
+
+
+def test_track_tunes_the_controller_as_run_does_for_the_same_condition(
+    runner: CliRunner, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`magrun track --sigma-mm 2` and a protocol trial with noise_sigma_mm 2 (default
+    controller settings, the same robot and rate) hand the methods the same configuration:
+    the Kalman filter assumes the 2 mm noise it gets."""
+    import magrun.control.methods as methods
+    from magrun.protocol import Protocol
+    from magrun.trial import control_config
+
+    seen = []
+    real = methods.make_controller
+
+    def spy(method: str, robot: object, config: object = None, **kw: object) -> object:
+        seen.append(config)
+        return real(method, robot, config, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(methods, "make_controller", spy)
+    result = runner.invoke(cli, ["track", "baseline3", "--sigma-mm", "2", "--duration", "0.2"])
+    assert result.exit_code == 0, result.output
+    protocol = Protocol.model_validate(
+        {
+            "name": "same", "description": "track's condition", "robot": "magnet",
+            "workspace": {"kind": "open"}, "trajectory": {"kind": "s_curve"},
+            "methods": ["baseline3"], "controller": {"rate_hz": 25.0},
+            "conditions": {"noise_sigma_mm": 2.0}, "trials": 1,
+        }
+    )  # fmt: skip
+    (trial,) = protocol.expand()
+    from_run = control_config(protocol.controller, protocol.robot, trial.condition)
+    assert seen == [from_run]
+    assert from_run.kalman.measurement_position == pytest.approx(2e-3)
