@@ -16,7 +16,7 @@ results with their units. Definitions:
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -24,9 +24,32 @@ from numpy.typing import ArrayLike, NDArray
 if TYPE_CHECKING:
     import pandas as pd
 
-    from analysis.load import Recording
-
 FloatArray = NDArray[np.float64]
+
+
+class TrialRecord(Protocol):
+    """What :func:`trial_metrics` reads of a trial besides its samples (an
+    :class:`analysis.load.Recording` is one)."""
+
+    @property
+    def boundaries(self) -> dict[str, np.ndarray]: ...  # name -> (n, 2) polyline, m
+
+    @property
+    def critical(self) -> str | None: ...
+
+    @property
+    def robot_length(self) -> float | None: ...  # m
+
+    @property
+    def robot_diameter(self) -> float | None: ...  # m
+
+    @property
+    def status(self) -> pd.DataFrame: ...  # the controller status per tick
+
+    @property
+    def recorder(self) -> dict[str, str]: ...  # the recorder's summary (dropped_ticks)
+
+    def control_period(self) -> float: ...  # s
 
 #: clearance, mm, at or below which the body counts as touching a boundary
 CONTACT_MM = 0.05
@@ -130,7 +153,7 @@ def _q(values: ArrayLike, q: float) -> float:
 
 
 def trial_metrics(
-    rec: Recording, samples: pd.DataFrame, contact_mm: float = CONTACT_MM
+    rec: TrialRecord, samples: pd.DataFrame, contact_mm: float = CONTACT_MM
 ) -> dict[str, Any]:
     """One trial's metrics, named with units; NaN where a recording has nothing to say.
 

@@ -65,7 +65,7 @@ class _Strict(BaseModel):
 
 
 class Conditions(_Strict):
-    """Feedback conditions of one trial (unit-suffixed, converted to SI by the runner)."""
+    """Feedback conditions of one trial: unit-suffixed as written, in SI as properties."""
 
     tracking_rate_hz: PositiveFloat | None = Field(
         None, description="Fluoroscopy (feedback) frame rate, Hz; default: every control tick."
@@ -76,6 +76,21 @@ class Conditions(_Strict):
     noise_sigma_deg: NonNegativeFloat = Field(
         0.0, description="Gaussian feedback noise on the heading, standard deviation, degrees."
     )
+
+    @property
+    def rate_hz(self) -> float:
+        """Feedback frames per second (infinite: one every control tick)."""
+        return self.tracking_rate_hz or math.inf
+
+    @property
+    def noise_position_m(self) -> float:
+        """Feedback noise on x and on y, standard deviation, m."""
+        return self.noise_sigma_mm * 1e-3
+
+    @property
+    def noise_heading_rad(self) -> float:
+        """Feedback noise on the heading, standard deviation, rad."""
+        return math.radians(self.noise_sigma_deg)
 
 
 #: how each condition is written in a condition slug (``rate-3hz``) and in results
@@ -423,7 +438,7 @@ class Protocol(_Strict):
         root = self.seed if seed is None else seed
         trials = []
         for c_index, values in enumerate(itertools.product(*(v for _, v in items))):
-            condition = {**base, **dict(zip(names, values, strict=True))}
+            condition = Conditions(**{**base, **dict(zip(names, values, strict=True))})
             for method in methods:
                 slug = condition_slug(method, dict(zip(names, values, strict=True)))
                 for k in range(repeats):
@@ -458,7 +473,7 @@ class Trial(BaseModel):
 
     protocol: Protocol
     method: str
-    condition: dict[str, float | None]
+    condition: Conditions
     swept: tuple[str, ...]
     index: int
     seed: int
@@ -475,7 +490,7 @@ class Trial(BaseModel):
         return {
             "protocol": self.protocol.name,
             "method": self.method,
-            **self.condition,
+            **self.condition.model_dump(),
             "trial": self.index,
             "seed": self.seed,
             "quick": self.quick,

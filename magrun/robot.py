@@ -324,4 +324,3 @@ def heading_rate(params: RobotParams, field_along: float) -> float:
     moment is ``field_along`` (T): the linearised, drag-dominated heading dynamics
     d_r δθ̇ = −m B_∥ δθ. Negative (the error grows) when the field is against the moment."""
     return params.moment * field_along / params.drag_rotation
-

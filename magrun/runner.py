@@ -4,9 +4,10 @@
     >>> from magrun.runner import run_protocol
     >>> manifest = run_protocol(load_protocol("protocols/rate.yaml"), "recordings", jobs=2)
 
-One trial (:func:`execute_trial`) builds everything from the :class:`~magrun.protocol.Trial`
-alone: the rig (seeded), the controller, the camera tracker, the fluoroscopy mimic (seeded),
-and a :class:`~magrun.recording.TrialRecorder`; it then runs :func:`magrun.loop.run_trial`.
+One trial (:func:`execute_trial`) is built from the :class:`~magrun.protocol.Trial` alone by
+:func:`magrun.trial.assemble` (the rig, seeded; the controller; the camera tracker; the
+fluoroscopy mimic, seeded; the safety layer); the runner adds a recorder
+(:class:`~magrun.recording.TrialRecorder`), runs it and writes its manifest entry.
 Because a trial depends on nothing else, trials run in any order, in any process: a local
 process pool (``jobs``), or Ray on a cluster (:func:`ray_executor`), give the same recordings
 (up to the wall-clock fields: solve and compute times, and with ``charge_compute_time`` the
@@ -39,7 +40,6 @@ import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager, nullcontext, suppress
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,107 +49,10 @@ from magrun import interrupt
 from magrun.atomic import write_text
 from magrun.protocol import Protocol, Trial
 from magrun.realtime import cpu_split, loop_placement
+from magrun.trial import NO_DRIVER, HardwareSpec, RigSpec, RunError
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
-
-
-class RunError(RuntimeError):
-    """A run that cannot start (bad output folder, unavailable rig); nothing was written."""
-
-
-@dataclass(frozen=True)
-class Scene:
-    """What a trial runs in: reference path, walls, boundaries (SI)."""
-
-    reference: Any  # magrun.scene.Trajectory
-    walls: Any  # magrun.scene.Walls or None (the rig's default box)
-    boundaries: dict[str, Any]
-    critical: str | None
-    half_width: float  # m, half the side of the square workspace
-
-
-def build_scene(protocol: Protocol) -> Scene:
-    """The reference trajectory and walls a protocol describes."""
-    from magrun.field.coils import CoilSystem
-    from magrun.phantom import load_phantom
-    from magrun.scene import Walls, out_and_back, s_trajectory
-
-    phantom = None
-    ws = protocol.workspace
-    if ws.kind != "open":
-        phantom = load_phantom(ws.phantom)
-    traj = protocol.trajectory
-    if traj.kind == "s_curve":
-        reference = s_trajectory(size=traj.size_mm * 1e-3, speed=traj.speed_mm_s * 1e-3)
-    else:
-        if traj.path == "phantom":
-            if phantom is None or phantom.path is None:
-                raise ValueError("trajectory.path 'phantom': the phantom file has no path")
-            points = phantom.path
-        else:
-            points = np.asarray(traj.path, dtype=np.float64) * 1e-3
-        reference = out_and_back(points, traj.speed_mm_s * 1e-3, traj.hold_s, traj.flip_s)
-    half_width = CoilSystem.load().workspace_half_width
-    if phantom is not None:
-        box = Walls.box(half_width)
-        return Scene(
-            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, half_width
-        )
-    return Scene(reference, None, {}, None, half_width)
-
-
-def free_space_of(scene: Scene, robot: Any) -> Any:
-    """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
-    and critical boundary, or the workspace square."""
-    from magrun.freespace import FreeSpace
-
-    if scene.boundaries:
-        return FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
-    return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
-
-
-@dataclass(frozen=True)
-class HardwareSpec:
-    """The real rig (``--rig hardware``): a coil driver URL and a camera source.
-
-    ``driver``: ``tcp://host:port`` (the line protocol, :mod:`magrun.rigs.wire`) or a
-    plugin's scheme (:mod:`magrun.rigs.drivers`). ``camera``: ``driver`` (frames over the
-    driver's connection, as ``magrun rig-emulator`` serves them) or an OpenCV source (device
-    index, video file, GStreamer pipeline). Trials run one at a time, in real time.
-    """
-
-    driver: str
-    camera: str = "driver"
-
-    def __str__(self) -> str:
-        return "hardware"
-
-
-RigSpec = str | HardwareSpec
-
-
-def _make_rig(
-    kind: RigSpec, robot: str, walls: Any, seed: int, camera: bool, watchdog_s: float = 0.1
-) -> Any:
-    if isinstance(kind, HardwareSpec):
-        from magrun.rigs.cameras import camera_source
-        from magrun.rigs.drivers import load_driver
-        from magrun.rigs.hardware import HardwareRig
-        from magrun.robot import load_robot
-        from magrun.tracking.camera import Camera
-
-        driver = load_driver(kind.driver)
-        source = camera_source(kind.camera, driver)
-        return HardwareRig(driver, source, Camera(), load_robot(robot), watchdog_s)
-    if kind == "hardware":
-        raise RunError("--rig hardware needs --driver URL (e.g. tcp://127.0.0.1:5555)")
-    from magrun.rigs.sim import SimRig
-    from magrun.tracking.camera import CameraConfig
-
-    return SimRig.default(
-        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None
-    )
 
 
 @contextmanager
@@ -169,16 +72,10 @@ def execute_trial(
     trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
 ) -> dict[str, Any]:
     """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
-    from magrun.control.methods import make_controller
     from magrun.health import trial_health
-    from magrun.loop import run_trial
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder, software_versions
-    from magrun.robot import load_robot
-    from magrun.safety import SafetyConfig, SafetyLayer
-    from magrun.tracking.fluoroscopy import FluoroscopyMimic
-    from magrun.tracking.tracker import Tracker
-    from magrun.trial import control_config
+    from magrun.trial import assemble
 
     entry = manifest_entry(trial)
     if interrupt.requested() is not None:
@@ -186,35 +83,12 @@ def execute_trial(
     t0 = time.perf_counter()
     base = Path(out) / trial.relpath
     recorder = None
-    the_rig = None
+    parts = None
     sim = rig == "sim"
     try:
-        protocol = trial.protocol
-        scene = build_scene(protocol)
-        robot = load_robot(protocol.robot)
-        cfg = control_config(trial.protocol.controller, trial.protocol.robot, trial.condition)
-        free_space = free_space_of(scene, robot)
-        controller = make_controller(trial.method, robot, cfg, free_space=free_space)
-        the_rig = _make_rig(
-            rig, protocol.robot, scene.walls, trial.seed, protocol.feedback.camera,
-            protocol.safety.stall_timeout_ms * 1e-3,
-        )  # fmt: skip
-        if not sim:
-            the_rig.connect()  # the rig's channels and limits come from its controller
-        # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
-        # camera (its observations' poses), the loop's feedback derives from them
-        tracker = (
-            Tracker.default(the_rig.camera, the_rig.nominal_robot)
-            if sim and the_rig.camera
-            else None
-        )
-        rate = trial.condition.get("tracking_rate_hz") or math.inf
-        mimic = FluoroscopyMimic(
-            rate,
-            float(trial.condition.get("noise_sigma_mm") or 0.0) * 1e-3,
-            math.radians(float(trial.condition.get("noise_sigma_deg") or 0.0)),
-            seed=trial.seed,
-        )
+        parts = assemble(trial, rig)
+        protocol, scene, robot = trial.protocol, parts.scene, parts.robot
+        controller, the_rig, tracker = parts.controller, parts.rig, parts.tracker
         meta = {
             **trial.describe(),
             "rig": str(rig),
@@ -260,33 +134,17 @@ def execute_trial(
         tick_progress = (
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )
-        limits = protocol.safety
-        margin = limits.workspace_margin_mm
-        safety = SafetyLayer(
-            controller.n_channels, controller.max_current, controller.max_change / controller.dt,
-            controller.dt,
-            SafetyConfig(
-                lost_timeout_s=limits.lost_timeout_s,
-                workspace_margin_m=None if margin is None else margin * 1e-3,
-            ),
-            workspace_half_width=scene.half_width,
-        )  # fmt: skip
         placement = loop_placement(cores[0] if cores else None) if not sim else nullcontext("")
         with _torch_threads(1), placement as scheduling:
-            log = run_trial(
-                controller, the_rig, scene.reference, feedback=mimic,
-                horizon=protocol.controller.horizon,
-                duration=protocol.trial_duration(trial.quick), progress=tick_progress,
-                tracker=tracker, on_tick=recorder.log,
-                frame_due=mimic.due if protocol.feedback.camera_frames == "fluoroscopy" else None,
-                charge_compute=protocol.controller.charge_compute_time and sim,
-                stop=lambda: interrupt.requested() is not None, safety=safety,
+            log = parts.run(
+                on_tick=recorder.log, progress=tick_progress,
+                stop=lambda: interrupt.requested() is not None,
             )  # fmt: skip
+        safety = parts.safety
         status = "interrupted" if log.interrupted else "stopped" if log.stop_reason else "ok"
-        frame_ticks = max(1, round(protocol.controller.rate_hz / rate)) if rate < math.inf else 1
         health, warnings = trial_health(
-            log, controller.dt, controller.max_current, free_space,
-            predict=controller.planner.predict, frame_ticks=frame_ticks,
+            log, controller.dt, controller.max_current, parts.free_space,
+            predict=controller.planner.predict, frame_ticks=parts.frame_ticks,
         )  # fmt: skip
         reason = log.stop_reason
         if log.interrupted:
@@ -320,9 +178,9 @@ def execute_trial(
         if recorder is not None:
             recorder.close("failed", entry["error"])
     finally:
-        if the_rig is not None and not sim:
+        if parts is not None and not sim:
             with suppress(Exception):  # the rig's watchdog covers a dead link
-                the_rig.disconnect()
+                parts.rig.disconnect()
     entry["wall_s"] = time.perf_counter() - t0
     return entry
 
@@ -343,7 +201,7 @@ def manifest_entry(trial: Trial) -> dict[str, Any]:
         "rrd": trial.relpath.split("/", 1)[1] + ".rrd",
         "protocol": trial.protocol.name,
         "method": trial.method,
-        "conditions": trial.condition,
+        "conditions": trial.condition.model_dump(),
         "trial": trial.index,
         "seed": trial.seed,
         "status": "pending",
@@ -570,7 +428,7 @@ def run_protocol(
     elif rig not in RIGS:
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
     elif rig == "hardware":
-        _make_rig(rig, protocol.robot, None, 0, False)  # fails early and clearly
+        raise RunError(NO_DRIVER)
     out = Path(out)
     folder = out / protocol.name
     path = folder / "manifest.json"

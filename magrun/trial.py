@@ -1,38 +1,179 @@
-"""What a trial's parts are built from, shared by every entry point (``magrun run``, ``magrun
-track``, the benchmarks), so that one condition always gets one controller tuning.
+"""The one assembly of a trial, shared by every entry point (``magrun run``, ``magrun track``,
+the benchmarks): one condition always gets one rig, one controller tuning, one feedback.
+
+    >>> from magrun.protocol import load_protocol
+    >>> from magrun.trial import assemble
+    >>> trial = load_protocol("protocols/rate.yaml").expand(quick=True)[0]
+    >>> log = assemble(trial).run()                                  # doctest: +SKIP
+
+:func:`assemble` builds, from a :class:`~magrun.protocol.Trial` alone, everything the loop
+(:func:`magrun.loop.run_trial`) needs: the scene (reference path, walls, boundaries), the
+robot (loaded once), the controller with its estimator and free space, the rig (seeded
+simulator, or the hardware rig connected), the camera tracker, the fluoroscopy mimic (seeded)
+and the safety layer. What happens around a trial (executors, recording, the manifest) is
+the runner's (:mod:`magrun.runner`).
 
 :func:`control_config` turns a protocol's ``controller`` section, the robot and the trial's
 condition into the methods' :class:`~magrun.control.methods.ControlConfig`: the control
 period, the horizons and the Kalman filter's noise (the measurement noise follows the
 condition's ``noise_sigma_mm`` unless the protocol fixes it; the process noise is the robot's
 measured prediction error where the protocol says ``robot``).
+
+:func:`single_trial` makes a trial of an in-memory protocol with a chosen seed: how
+``magrun track`` and the benchmarks run a condition through this same assembly.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
 
 from magrun.control.estimation import KalmanConfig
-from magrun.control.methods import ControlConfig
+from magrun.control.methods import ControlConfig, make_controller
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
-from magrun.protocol import ControllerSettings
-from magrun.robot import load_robot
+from magrun.freespace import FreeSpace
+from magrun.loop import TrialLog, run_trial
+from magrun.protocol import Conditions, ControllerSettings, Protocol, Trial, condition_slug
+from magrun.records import Tick
+from magrun.robot import RobotParams, load_robot
+from magrun.safety import SafetyConfig, SafetyLayer
+from magrun.scene import Trajectory, Walls
+from magrun.tracking.fluoroscopy import FluoroscopyMimic
+
+
+class RunError(RuntimeError):
+    """A run that cannot start (bad output folder, unavailable rig); nothing was written."""
+
+
+# --------------------------------------------------------------------------------------------
+# the scene
+
+
+@dataclass(frozen=True)
+class Scene:
+    """What a trial runs in: reference path, walls, boundaries (SI)."""
+
+    reference: Trajectory
+    walls: Walls | None  # None: the rig's default box
+    boundaries: dict[str, Any]
+    critical: str | None
+    half_width: float  # m, half the side of the square workspace
+
+
+def build_scene(protocol: Protocol) -> Scene:
+    """The reference trajectory and walls a protocol describes."""
+    from magrun.field.coils import CoilSystem
+    from magrun.phantom import load_phantom
+    from magrun.scene import out_and_back, s_trajectory
+
+    phantom = None
+    ws = protocol.workspace
+    if ws.kind != "open":
+        phantom = load_phantom(ws.phantom)
+    traj = protocol.trajectory
+    if traj.kind == "s_curve":
+        reference = s_trajectory(size=traj.size_mm * 1e-3, speed=traj.speed_mm_s * 1e-3)
+    else:
+        if traj.path == "phantom":
+            if phantom is None or phantom.path is None:
+                raise ValueError("trajectory.path 'phantom': the phantom file has no path")
+            points = phantom.path
+        else:
+            points = np.asarray(traj.path, dtype=np.float64) * 1e-3
+        reference = out_and_back(points, traj.speed_mm_s * 1e-3, traj.hold_s, traj.flip_s)
+    half_width = CoilSystem.load().workspace_half_width
+    if phantom is not None:
+        box = Walls.box(half_width)
+        return Scene(
+            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, half_width
+        )
+    return Scene(reference, None, {}, None, half_width)
+
+
+def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
+    """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
+    and critical boundary, or the workspace square."""
+    if scene.boundaries:
+        return FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
+    return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
+
+
+# --------------------------------------------------------------------------------------------
+# the rig
+
+
+@dataclass(frozen=True)
+class HardwareSpec:
+    """The real rig (``--rig hardware``): a coil driver URL and a camera source.
+
+    ``driver``: ``tcp://host:port`` (the line protocol, :mod:`magrun.rigs.wire`) or a
+    plugin's scheme (:mod:`magrun.rigs.drivers`). ``camera``: ``driver`` (frames over the
+    driver's connection, as ``magrun rig-emulator`` serves them) or an OpenCV source (device
+    index, video file, GStreamer pipeline). Trials run one at a time, in real time.
+    """
+
+    driver: str
+    camera: str = "driver"
+
+    def __str__(self) -> str:
+        return "hardware"
+
+
+RigSpec = str | HardwareSpec
+
+NO_DRIVER = "--rig hardware needs --driver URL (e.g. tcp://127.0.0.1:5555)"
+
+
+def make_rig(
+    kind: RigSpec,
+    robot: RobotParams,
+    walls: Walls | None,
+    seed: int,
+    camera: bool,
+    watchdog_s: float = 0.1,
+) -> Any:
+    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``) or the hardware rig
+    a :class:`HardwareSpec` names (not yet connected)."""
+    if isinstance(kind, HardwareSpec):
+        from magrun.rigs.cameras import camera_source
+        from magrun.rigs.drivers import load_driver
+        from magrun.rigs.hardware import HardwareRig
+        from magrun.tracking.camera import Camera
+
+        driver = load_driver(kind.driver)
+        source = camera_source(kind.camera, driver)
+        return HardwareRig(driver, source, Camera(), robot, watchdog_s)
+    if kind == "hardware":
+        raise RunError(NO_DRIVER)
+    from magrun.rigs.sim import SimRig
+    from magrun.tracking.camera import CameraConfig
+
+    return SimRig.default(
+        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the controller's tuning
 
 
 def control_config(
-    settings: ControllerSettings, robot: str, condition: Mapping[str, float | None]
+    settings: ControllerSettings, robot: RobotParams, condition: Conditions
 ) -> ControlConfig:
-    """The controller tuning for ``robot`` under ``condition`` (``noise_sigma_mm``,
-    ``noise_sigma_deg``: the feedback's noise, mm and degrees; missing or None: none)."""
+    """The controller tuning for ``robot`` under ``condition`` (its feedback noise)."""
     k = settings.kalman
     if k.measurement_sigma_mm == "condition":
-        sigma_mm = max(float(condition.get("noise_sigma_mm") or 0.0), k.tracker_sigma_mm)
+        sigma_mm = max(condition.noise_sigma_mm, k.tracker_sigma_mm)
     else:
         sigma_mm = k.measurement_sigma_mm
-    sigma_deg = max(k.measurement_sigma_deg, float(condition.get("noise_sigma_deg") or 0.0))
-    measured = load_robot(robot).prediction_sigma  # a protocol checks it exists where it asks
+    sigma_deg = max(k.measurement_sigma_deg, condition.noise_sigma_deg)
+    measured = robot.prediction_sigma  # a protocol checks it exists where it asks for it
     process_m = (
         measured[0] if measured and k.process_sigma_mm == "robot"
         else float(k.process_sigma_mm) * 1e-3
@@ -52,3 +193,142 @@ def control_config(
             process_angle=process_rad,
         ),
     )
+
+
+# --------------------------------------------------------------------------------------------
+# the assembly
+
+
+@dataclass
+class TrialParts:
+    """Everything one trial runs with, built by :func:`assemble`; :meth:`run` runs it."""
+
+    trial: Trial
+    robot: RobotParams
+    scene: Scene
+    free_space: FreeSpace
+    config: ControlConfig
+    controller: Any  # magrun.control.base.Controller
+    rig: Any  # magrun.rigs.base.Rig (SimRig or HardwareRig)
+    tracker: Any  # magrun.tracking.tracker.Tracker, None: the rig's own poses
+    feedback: FluoroscopyMimic
+    safety: SafetyLayer
+    simulated: bool
+    controller_build_s: float  # wall time of the controller's build (solvers, models)
+
+    @property
+    def protocol(self) -> Protocol:
+        return self.trial.protocol
+
+    @property
+    def horizon(self) -> int:
+        """Reference poses the planner sees per tick, minus one: the NMPC's horizon."""
+        return self.protocol.controller.horizon
+
+    @property
+    def duration(self) -> float | None:
+        """Seconds, or None: the reference plus 1 s of hold."""
+        return self.protocol.trial_duration(self.trial.quick)
+
+    @property
+    def frame_ticks(self) -> int:
+        """Control ticks per feedback frame."""
+        rate = self.trial.condition.rate_hz
+        return max(1, round(self.protocol.controller.rate_hz / rate)) if rate < math.inf else 1
+
+    def run(
+        self,
+        on_tick: Callable[[Tick], None] | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        stop: Callable[[], bool] | None = None,
+    ) -> TrialLog:
+        """Run the trial closed loop (:func:`magrun.loop.run_trial`); once per assembly."""
+        protocol = self.protocol
+        fluoroscopy_frames = protocol.feedback.camera_frames == "fluoroscopy"
+        return run_trial(
+            self.controller, self.rig, self.scene.reference, feedback=self.feedback,
+            horizon=self.horizon, duration=self.duration, progress=progress,
+            tracker=self.tracker, on_tick=on_tick,
+            frame_due=self.feedback.due if fluoroscopy_frames else None,
+            charge_compute=protocol.controller.charge_compute_time and self.simulated,
+            stop=stop, safety=self.safety,
+        )  # fmt: skip
+
+
+def assemble(
+    trial: Trial,
+    rig: RigSpec = "sim",
+    tune: Callable[[ControlConfig], ControlConfig] | None = None,
+) -> TrialParts:
+    """Build ``trial``'s parts on ``rig`` (a hardware rig is connected here and disconnected
+    again if a later part fails). ``tune`` adjusts the controller's configuration before the
+    controller is built (the benchmarks pick a solver with it)."""
+    from magrun.tracking.tracker import Tracker
+
+    protocol = trial.protocol
+    scene = build_scene(protocol)
+    robot = load_robot(protocol.robot)
+    config = control_config(protocol.controller, robot, trial.condition)
+    if tune is not None:
+        config = tune(config)
+    free_space = free_space_of(scene, robot)
+    t0 = time.perf_counter()
+    controller = make_controller(trial.method, robot, config, free_space=free_space)
+    build_s = time.perf_counter() - t0
+    simulated = rig == "sim"
+    the_rig = make_rig(
+        rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
+        protocol.safety.stall_timeout_ms * 1e-3,
+    )  # fmt: skip
+    if not simulated:
+        the_rig.connect()  # the rig's channels and limits come from its coil driver
+    try:
+        # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
+        # camera (its observations' poses), the loop's feedback derives from them
+        tracker = (
+            Tracker.default(the_rig.camera, the_rig.nominal_robot)
+            if simulated and the_rig.camera
+            else None
+        )
+        condition = trial.condition
+        feedback = FluoroscopyMimic(
+            condition.rate_hz, condition.noise_position_m, condition.noise_heading_rad,
+            seed=trial.seed,
+        )  # fmt: skip
+        limits = protocol.safety
+        margin = limits.workspace_margin_mm
+        safety = SafetyLayer(
+            controller.n_channels, controller.max_current, controller.max_change / controller.dt,
+            controller.dt,
+            SafetyConfig(
+                lost_timeout_s=limits.lost_timeout_s,
+                workspace_margin_m=None if margin is None else margin * 1e-3,
+            ),
+            workspace_half_width=scene.half_width,
+        )  # fmt: skip
+    except BaseException:
+        if not simulated:
+            the_rig.disconnect()
+        raise
+    return TrialParts(
+        trial, robot, scene, free_space, config, controller, the_rig, tracker, feedback, safety,
+        simulated, build_s,
+    )  # fmt: skip
+
+
+def single_trial(protocol: Protocol, method: str, seed: int) -> Trial:
+    """One trial of ``method`` under ``protocol``'s fixed conditions, with rig and feedback
+    seeded by ``seed`` itself (an in-memory protocol's trial: ``magrun track``, benchmarks)."""
+    return Trial(
+        protocol=protocol, method=method, condition=protocol.conditions, swept=(), index=0,
+        seed=seed, slug=condition_slug(method, {}),
+    )  # fmt: skip
+
+
+def with_solver(solver: str) -> Callable[[ControlConfig], ControlConfig]:
+    """A ``tune`` for :func:`assemble`: the NMPC methods' solver (``rti`` or ``ipopt``)."""
+
+    def tune(config: ControlConfig) -> ControlConfig:
+        return replace(config, nmpc=replace(config.nmpc, solver=solver))  # type: ignore[arg-type]
+
+    return tune

@@ -173,7 +173,8 @@ def test_fit_refuses_maps_made_for_another_coil_system(runner: CliRunner, tmp_pa
 
 
 def test_track_json_reports_errors_per_method(runner: CliRunner) -> None:
-    result = runner.invoke(cli, ["track", "baseline2", "baseline3", "--duration", "2", "--json"])
+    args = ["track", "baseline2", "baseline3", "--duration", "2", "--no-charge-compute-time"]
+    result = runner.invoke(cli, [*args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
     assert [r["method"] for r in doc["results"]] == ["baseline2", "baseline3"]
@@ -191,8 +192,9 @@ def test_track_json_reports_errors_per_method(runner: CliRunner) -> None:
     [
         (["track", "nmpc9"], "unknown method(s) nmpc9"),
         (["track", "baseline2", "--robot", "rover"], "unknown robot 'rover'"),
-        (["track", "baseline2", "--speed-mm-s", "0"], "--speed-mm-s must be positive"),
-        (["bench", "nmpc", "--ticks", "1"], "--ticks must be at least 2"),
+        (["track", "baseline2", "--speed-mm-s", "0"], "Invalid value for '--speed-mm-s'"),
+        (["track", "baseline2", "--rate-hz", "30"], "above the control rate 25 Hz"),
+        (["bench", "nmpc", "--ticks", "1"], "Invalid value for '--ticks'"),
     ],
 )
 def test_control_verbs_reject_bad_input(runner: CliRunner, args: list[str], message: str) -> None:
@@ -227,7 +229,7 @@ def test_bench_nmpc_json(runner: CliRunner, monkeypatch: pytest.MonkeyPatch) -> 
 def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:
     """UNet tracking on rendered frames, 7.5 Hz, σ 2 mm: 16 measurements in 2 s, none lost."""
     args = ["track", "baseline2", "--duration", "2", "--camera", "--rate-hz", "7.5"]
-    result = runner.invoke(cli, [*args, "--sigma-mm", "2", "--json"])
+    result = runner.invoke(cli, [*args, "--sigma-mm", "2", "--no-charge-compute-time", "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
     assert doc["feedback"] == {"source": "unet camera tracking", "rate_hz": 7.5, "sigma_mm": 2.0}
@@ -262,7 +264,7 @@ def test_tracker_train_then_eval_json(runner: CliRunner, tmp_path) -> None:
     [
         (["tracker", "train", "--labels", "{junk}"], "fine-tuning needs --images"),
         (["tracker", "eval", "--weights", "{junk}"], "cannot load weights"),
-        (["track", "baseline2", "--rate-hz", "0"], "--rate-hz must be positive"),
+        (["track", "baseline2", "--rate-hz", "0"], "Invalid value for '--rate-hz'"),
     ],
 )
 def test_tracker_verbs_reject_bad_input(
@@ -422,35 +424,42 @@ def test_bench_tick_json(runner: CliRunner) -> None:
     assert doc["sum_of_medians_ms"] == pytest.approx(sum(stages))
 
 
-def test_track_tunes_the_controller_as_run_does_for_the_same_condition(
+def test_track_assembles_its_trial_as_run_does_for_the_same_condition(
     runner: CliRunner, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """`magrun track --sigma-mm 2` and a protocol trial with noise_sigma_mm 2 (default
-    controller settings, the same robot and rate) hand the methods the same configuration:
-    the Kalman filter assumes the 2 mm noise it gets."""
-    import magrun.control.methods as methods
+    """`magrun track --sigma-mm 2 --rate-hz 5` and a protocol trial with the same condition
+    (default controller settings, the same robot and rate) are assembled alike: the methods
+    get the same configuration (the Kalman filter assumes the 2 mm noise it gets), the
+    feedback the same rate and noise, the safety layer the same limits."""
+    import magrun.trial as trial_module
     from magrun.protocol import Protocol
-    from magrun.trial import control_config
 
-    seen = []
-    real = methods.make_controller
+    seen: list[trial_module.TrialParts] = []
+    real = trial_module.assemble
 
-    def spy(method: str, robot: object, config: object = None, **kw: object) -> object:
-        seen.append(config)
-        return real(method, robot, config, **kw)  # type: ignore[arg-type]
+    def spy(*args: object, **kw: object) -> trial_module.TrialParts:
+        parts = real(*args, **kw)  # type: ignore[arg-type]
+        seen.append(parts)
+        return parts
 
-    monkeypatch.setattr(methods, "make_controller", spy)
-    result = runner.invoke(cli, ["track", "baseline3", "--sigma-mm", "2", "--duration", "0.2"])
+    monkeypatch.setattr(trial_module, "assemble", spy)
+    args = ["track", "baseline3", "--sigma-mm", "2", "--rate-hz", "5", "--duration", "0.2"]
+    result = runner.invoke(cli, args)
     assert result.exit_code == 0, result.output
     protocol = Protocol.model_validate(
         {
             "name": "same", "description": "track's condition", "robot": "magnet",
             "workspace": {"kind": "open"}, "trajectory": {"kind": "s_curve"},
             "methods": ["baseline3"], "controller": {"rate_hz": 25.0},
-            "conditions": {"noise_sigma_mm": 2.0}, "trials": 1,
+            "conditions": {"noise_sigma_mm": 2.0, "tracking_rate_hz": 5.0}, "trials": 1,
         }
     )  # fmt: skip
     (trial,) = protocol.expand()
-    from_run = control_config(protocol.controller, protocol.robot, trial.condition)
-    assert seen == [from_run]
-    assert from_run.kalman.measurement_position == pytest.approx(2e-3)
+    from_run = real(trial)
+    (from_track,) = seen
+    assert from_track.config == from_run.config
+    assert from_run.config.kalman.measurement_position == pytest.approx(2e-3)
+    for parts in (from_track, from_run):
+        assert (parts.feedback.rate_hz, parts.feedback.sigma_position) == (5.0, 2e-3)
+        assert parts.safety.config == from_run.safety.config
+        assert parts.free_space.critical is None

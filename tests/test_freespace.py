@@ -24,7 +24,7 @@ from magrun.protocol import load_protocol
 from magrun.records import ControllerStatus
 from magrun.rigs.sim import SimRig
 from magrun.robot import load_robots
-from magrun.runner import build_scene, free_space_of
+from magrun.trial import build_scene, free_space_of
 
 PROTOCOLS = Path(__file__).parents[1] / "protocols"
 

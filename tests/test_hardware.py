@@ -20,8 +20,9 @@ from magrun.rigs.drivers import DriverError, TcpLineDriver, load_driver
 from magrun.rigs.emulator import RigEmulator
 from magrun.rigs.sim import SimRig
 from magrun.rigs.wire import LineConnection, WireError
-from magrun.runner import HardwareSpec, RunError, run_protocol
+from magrun.runner import run_protocol
 from magrun.tracking.camera import CameraConfig
+from magrun.trial import HardwareSpec, RunError
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"

@@ -16,7 +16,7 @@ from magrun.phantom import load_phantom
 from magrun.protocol import load_protocol
 from magrun.records import ControllerStatus
 from magrun.robot import load_robots
-from magrun.runner import build_scene
+from magrun.trial import build_scene
 
 PROTOCOLS = Path(__file__).parents[1] / "protocols"
 

@@ -101,7 +101,7 @@ def test_expansion_covers_method_by_condition_by_repeat_in_a_fixed_order() -> No
     trials = p.expand()
     assert len(trials) == 3 * (2 * 3) * 2
     combos = list(itertools.product([3.0, 10.0], [0.0, 1.0, 2.0]))
-    got = [(t.condition["tracking_rate_hz"], t.condition["noise_sigma_mm"]) for t in trials]
+    got = [(t.condition.tracking_rate_hz, t.condition.noise_sigma_mm) for t in trials]
     assert got == [c for c in combos for _ in range(3 * 2)]
     assert [t.relpath for t in trials] == [t.relpath for t in p.expand()]
     assert len({t.relpath for t in trials}) == len(trials)
@@ -112,7 +112,7 @@ def test_methods_share_seeds_within_a_condition_and_repeat_and_nowhere_else() ->
     trials = _protocol().expand()
     by_key: dict[tuple[object, ...], set[int]] = {}
     for t in trials:
-        key = (t.condition["tracking_rate_hz"], t.condition["noise_sigma_mm"], t.index)
+        key = (t.condition.tracking_rate_hz, t.condition.noise_sigma_mm, t.index)
         by_key.setdefault(key, set()).add(t.seed)
     assert all(len(seeds) == 1 for seeds in by_key.values())  # paired across methods
     assert len({next(iter(s)) for s in by_key.values()}) == len(by_key)  # distinct otherwise
@@ -122,8 +122,8 @@ def test_methods_share_seeds_within_a_condition_and_repeat_and_nowhere_else() ->
 
 def test_quick_defaults_to_the_extreme_values_of_each_sweep_and_one_trial() -> None:
     quick = _protocol().expand(quick=True)
-    rates = sorted({t.condition["tracking_rate_hz"] for t in quick})
-    sigmas = sorted({t.condition["noise_sigma_mm"] for t in quick})
+    rates = sorted({t.condition.tracking_rate_hz for t in quick})
+    sigmas = sorted({t.condition.noise_sigma_mm for t in quick})
     assert rates == [3.0, 10.0]
     assert sigmas == [0.0, 2.0]
     assert len(quick) == 3 * 2 * 2
@@ -132,7 +132,9 @@ def test_quick_defaults_to_the_extreme_values_of_each_sweep_and_one_trial() -> N
 def test_fixed_conditions_reach_every_trial_and_defaults_are_stated() -> None:
     p = _protocol(sweep={"tracking_rate_hz": [3]}, conditions={"noise_sigma_mm": 2.0})
     (t, *_) = p.expand()
-    assert t.condition == {"tracking_rate_hz": 3.0, "noise_sigma_mm": 2.0, "noise_sigma_deg": 0.0}
+    assert t.condition.model_dump() == {
+        "tracking_rate_hz": 3.0, "noise_sigma_mm": 2.0, "noise_sigma_deg": 0.0
+    }  # fmt: skip
 
 
 def test_condition_slug_formats_values_with_units() -> None:

@@ -118,7 +118,7 @@ def test_sigkill_loses_at_most_the_last_second() -> None:
     """Recording processes killed with SIGKILL mid-trial (magrun bench sigkill's child, at
     real-time pace): ``recover`` gets back everything up to at most 1 s of trial time (the
     flush period) plus the tick in hand and one of slack before the kill."""
-    from magrun.bench import bench_sigkill
+    from magrun.bench.sigkill import bench_sigkill
 
     result = bench_sigkill(kills=2, dt=DT, window=(1.5, 3.0), seed=1)
     for run in result["runs"]:

@@ -220,4 +220,3 @@ class Controller:
         self._predicted_velocity = predicted[3:6].copy() if predicted.size >= 6 else None
         self.currents = currents
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
-

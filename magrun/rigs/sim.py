@@ -151,16 +151,18 @@ class SimRig(Rig):
     @classmethod
     def default(
         cls,
-        robot: str = "magnet",
+        robot: str | RobotParams = "magnet",
         walls: Walls | None = None,
         perturbation: Perturbation = DEFAULT_PERTURBATION,
         seed: int = 0,
         camera: CameraConfig | None = None,
     ) -> SimRig:
-        """The paper's rig with the shipped reference maps."""
+        """The paper's rig with the shipped reference maps (``robot``: a robot of robots.yaml
+        or its parameters)."""
         coils = CoilSystem.load()
+        params = load_robot(robot) if isinstance(robot, str) else robot
         return cls(
-            coils, ChannelGrid.load(coils), load_robot(robot), walls, perturbation, seed,
+            coils, ChannelGrid.load(coils), params, walls, perturbation, seed,
             camera=camera,
         )  # fmt: skip
 

@@ -1,0 +1,133 @@
+"""``magrun bench nmpc``: NMPC solve times and closed-loop tracking, the fast solver against
+the IPOPT reference, on the S-trajectory with perfect feedback."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from magrun.bench.machine import machine, ms, one_core
+
+#: NMPC variants: name → (method, solver)
+NMPC_VARIANTS: dict[str, tuple[str, str]] = {
+    "proposed": ("proposed", "rti"),
+    "proposed_ipopt_reference": ("proposed", "ipopt"),
+    "b5_lut": ("baseline5", "rti"),
+    "b5_lut_ipopt": ("baseline5", "ipopt"),
+}
+
+#: the benchmark's control rate, Hz
+RATE_HZ = 25.0
+
+
+def s_curve_protocol(ticks: int | None) -> Any:
+    """The benchmark's condition as a protocol: the paper's S (43 mm, 3 mm/s) in the open
+    workspace, the exact pose every tick (no camera, no noise), no compute time charged,
+    and the Kalman filter's default tuning (1 mm, 3°; process 0.3 mm, 2° per tick)."""
+    from magrun.protocol import Protocol
+
+    return Protocol.model_validate(
+        {
+            "name": "bench-nmpc",
+            "robot": "magnet",
+            "trajectory": {"kind": "s_curve"},
+            "methods": sorted({m for m, _ in NMPC_VARIANTS.values()}),
+            "controller": {
+                "rate_hz": RATE_HZ,
+                "charge_compute_time": False,
+                "kalman": {"measurement_sigma_mm": 1.0},
+            },
+            "feedback": {"camera": False},
+            # ticks at 0, dt, …; None: the whole S plus 1 s of hold
+            "duration_s": None if ticks is None else (ticks - 1) / RATE_HZ,
+        }
+    )
+
+
+def bench_nmpc(
+    ticks: int | None = None,
+    variants: tuple[str, ...] = tuple(NMPC_VARIANTS),
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Per-solve times and closed-loop tracking of the NMPC variants on one core.
+
+    Each variant runs the paper's S-trajectory (43 mm, 3 mm/s; the first ``ticks`` ticks, or
+    all of it plus 1 s of hold) closed loop on the simulated rig (seed 0) with perfect
+    feedback and no latency charged, so tracking differences come from the solver alone.
+    Solve times are the planner's wall time per tick, the first (cold, iterated to
+    convergence) excluded.
+    """
+    from magrun.trial import assemble, single_trial, with_solver
+
+    unknown = set(variants) - set(NMPC_VARIANTS)
+    if unknown:
+        raise ValueError(f"unknown variants {sorted(unknown)}; known: {', '.join(NMPC_VARIANTS)}")
+    protocol = s_curve_protocol(ticks)
+    out: dict[str, Any] = {
+        "benchmark": "nmpc",
+        "horizon": protocol.controller.horizon,
+        "dt_s": 1.0 / RATE_HZ,
+        "coils": 8,
+        "trajectory": "S, 43 mm, 3 mm/s, perfect feedback, no latency charged",
+        "machine": machine(),
+        "variants": {},
+    }
+    with one_core() as core:
+        out["pinned_core"] = core
+        for name in variants:
+            method, solver = NMPC_VARIANTS[name]
+            if progress is not None:
+                progress(name)
+            parts = assemble(single_trial(protocol, method, seed=0), tune=with_solver(solver))
+            log = parts.run()
+            controller = parts.controller
+            solve = log.solve_times[1:]
+            out["variants"][name] = {
+                "method": method,
+                "model": "lookup_table" if method == "baseline5" else "zernike",
+                "solver": "Gauss-Newton RTI + HPIPM" if solver == "rti" else "IPOPT (converged)",
+                "build_s": parts.controller_build_s,
+                "ticks": len(log.t),
+                "median_ms": ms(solve, 50),
+                "p90_ms": ms(solve, 90),
+                "p99_ms": ms(solve, 99),
+                "max_ms": float(np.max(solve) * 1e3),
+                "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
+                "failed_solves": sum(not s.success for s in log.status),
+                # RTI: QPs HPIPM's fast preset failed and the robust one solved
+                "robust_retries": getattr(
+                    getattr(controller.planner, "backend", None), "robust_retries", 0
+                ),
+                "achievable_rate_hz": float(1.0 / np.median(solve)),
+                "rms_position_mm": log.rms_position_mm,
+                "rms_orientation_deg": log.rms_orientation_deg,
+            }
+    v = out["variants"]
+    if "proposed" in v and "proposed_ipopt_reference" in v:
+        fast, ref = v["proposed"], v["proposed_ipopt_reference"]
+        out["speedup_vs_ipopt"] = ref["median_ms"] / fast["median_ms"]
+        out["p99_speedup_vs_ipopt"] = ref["p99_ms"] / fast["p99_ms"]
+        out["rms_position_vs_ipopt"] = fast["rms_position_mm"] / ref["rms_position_mm"] - 1.0
+    if "b5_lut" in v and "b5_lut_ipopt" in v:
+        out["b5_speedup_vs_ipopt"] = v["b5_lut_ipopt"]["median_ms"] / v["b5_lut"]["median_ms"]
+    return out
+
+
+def summary(out: dict[str, Any]) -> list[str]:
+    """The result as lines for a terminal."""
+    lines = []
+    for name, r in out["variants"].items():
+        lines.append(
+            f"{name:>25}: median {r['median_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms,"
+            f" max {r['max_ms']:.2f} ms, {r['median_iterations']:.0f} it,"
+            f" RMS {r['rms_position_mm']:.4f} mm / {r['rms_orientation_deg']:.3f} deg,"
+            f" build {r['build_s']:.1f} s"
+        )
+    for key in ("speedup_vs_ipopt", "p99_speedup_vs_ipopt", "b5_speedup_vs_ipopt"):
+        if key in out:
+            lines.append(f"{key}: {out[key]:.1f}x")
+    if "rms_position_vs_ipopt" in out:
+        lines.append(f"RMS position vs IPOPT: {100 * out['rms_position_vs_ipopt']:+.2f} %")
+    return lines

@@ -1,0 +1,5 @@
+"""``python -m magrun.cli``: the ``magrun`` command."""
+
+from magrun.cli import main
+
+main()

@@ -1,0 +1,87 @@
+"""What the verbs share: the input-error exit, progress output, loading users' files."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+
+INPUT_ERROR = 2
+
+
+class InputError(click.ClickException):
+    """User input we cannot use: exit status 2, message only."""
+
+    exit_code = INPUT_ERROR
+
+
+def load_coils(path: Path | None) -> Any:
+    """The coil system of a coil-system YAML (default: the paper's), or an InputError."""
+    from magrun.field.coils import CoilFileError, CoilSystem
+
+    try:
+        return CoilSystem.load(path)
+    except CoilFileError as exc:
+        raise InputError(str(exc)) from exc
+
+
+def load_protocols(paths: tuple[Path, ...]) -> list[Any]:
+    """Every protocol, or one InputError listing every problem in every file."""
+    from magrun.protocol import load_protocol
+    from magrun.yamlio import YamlModelError
+
+    protocols, problems = [], []
+    for path in paths:
+        try:
+            protocols.append(load_protocol(path))
+        except YamlModelError as exc:
+            problems.extend(exc.problems)
+    if problems:
+        raise InputError("\n".join(problems))
+    return protocols
+
+
+def default_tracker(camera: Any, robot: Any, weights: Path | None = None) -> Any:
+    """The UNet tracker with ``weights`` (default: the shipped ones), or an InputError."""
+    from magrun.tracking.tracker import Tracker
+
+    try:
+        return Tracker.default(camera, robot, weights)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"cannot load tracker weights: {exc}") from exc
+
+
+class Progress:
+    """Per-tick progress on stderr while a trial runs (nothing with --json or off a terminal)."""
+
+    def __init__(self, label: str, enabled: bool) -> None:
+        self.label, self.enabled = label, enabled and sys.stderr.isatty()
+        self._bar: Any = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled:
+            return
+        if self._bar is None:
+            self._bar = click.progressbar(
+                length=total, label=self.label, file=sys.stderr, show_eta=True
+            )
+            self._bar.__enter__()
+        self._bar.update(1)
+        if done == total:
+            self._bar.__exit__(None, None, None)
+
+
+def say(prefix: str) -> Any:
+    """A progress callback printing ``prefix what ...`` on stderr."""
+
+    def echo(what: str) -> None:
+        click.echo(f"{prefix} {what} ...", err=True)
+
+    return echo
+
+
+JSON_OPTION = click.option(
+    "--json", "as_json", is_flag=True, help="Print the figures as one JSON object."
+)

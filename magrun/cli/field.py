@@ -1,0 +1,206 @@
+"""``magrun field``: coil field models (reference maps, Zernike fit, COMSOL import)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import click
+
+from magrun.cli.common import InputError, load_coils
+
+
+@click.group()
+def field() -> None:
+    """Coil field models: reference maps, Zernike fit, COMSOL import."""
+
+
+COILS_OPTION = click.option(
+    "--coils",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Coil-system YAML (default: the paper's rig shipped with magrun).",
+)
+
+
+@field.command("reference")
+@COILS_OPTION
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("recordings/field/reference_maps.npz"),
+    show_default=True,
+    help="Output .npz file.",
+)
+@click.option(
+    "--pitch-mm",
+    type=click.FloatRange(min=0.05, max=10.0),
+    default=1.0,
+    show_default=True,
+    help="Grid spacing in mm.",
+)
+@click.option(
+    "--sheets",
+    type=click.IntRange(min=1, max=200),
+    default=12,
+    show_default=True,
+    help="Radial current sheets per winding.",
+)
+def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int) -> None:
+    """Compute unit-current reference maps of every coil type with magpylib.
+
+    To refresh the maps shipped with magrun, run from a source checkout with
+    --out magrun/field/data/reference_maps.npz (see README, "Data files").
+    """
+    from magrun.field.reference import compute_reference_maps
+
+    system = load_coils(coils)
+    start = time.perf_counter()
+    maps = compute_reference_maps(system, pitch=pitch_mm * 1e-3, sheets=sheets)
+    maps.save(out)
+    grid = next(iter(maps.maps.values()))
+    click.echo(
+        f"wrote {out}: {len(maps.maps)} coil types on a {grid.x.size} x {grid.y.size} grid "
+        f"({pitch_mm:g} mm) in {time.perf_counter() - start:.1f} s"
+    )
+
+
+@field.command("fit")
+@COILS_OPTION
+@click.option(
+    "--reference",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Reference maps .npz (default: the maps shipped with magrun).",
+)
+@click.option(
+    "--out",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("recordings/field"),
+    show_default=True,
+    help="Folder for zernike_model.json, zernike_fit.json and zernike_figure.npz.",
+)
+@click.option(
+    "--max-order",
+    type=click.IntRange(min=1, max=20),
+    default=10,
+    show_default=True,
+    help="Highest radial degree scored.",
+)
+@click.option(
+    "--r2-saturation",
+    type=click.FloatRange(min=0.0, max=1.0),
+    default=0.01,
+    show_default=True,
+    help="Keep the smallest order after which one more order gains less R² than this.",
+)
+@click.option(
+    "--order",
+    "orders",
+    multiple=True,
+    metavar="TYPE=N",
+    help="Fix the order of a coil type instead of selecting it (repeatable), e.g. small=4.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the fit report as one JSON object.")
+def field_fit(
+    coils: Path | None,
+    reference: Path | None,
+    out: Path,
+    max_order: int,
+    r2_saturation: float,
+    orders: tuple[str, ...],
+    as_json: bool,
+) -> None:
+    """Fit the Zernike model to reference maps and report MAE and R² per coil type and order."""
+    from magrun.field.fitting import fit_reference, parse_orders
+    from magrun.field.reference import ReferenceMaps
+
+    system = load_coils(coils)
+    try:
+        fixed = parse_orders(list(orders))
+        maps = ReferenceMaps.load(reference)
+        result = fit_reference(
+            system, maps, max_order=max_order, r2_saturation=r2_saturation, fixed_orders=fixed
+        )
+    except (ValueError, KeyError) as exc:
+        raise InputError(str(exc).strip("'\"")) from exc
+    paths = result.save(out)
+    if as_json:
+        click.echo(json.dumps({**result.report, "files": {k: str(v) for k, v in paths.items()}}))
+        return
+    for coil_type, rep in result.report["coil_types"].items():
+        click.echo(f"{coil_type}: selected order {rep['selected_order']} ({rep['selected_by']})")
+        click.echo("  order  terms   MAE [mT/A]       R²   max err [mT/A]")
+        for s in rep["orders"]:
+            mark = "*" if s["order"] == rep["selected_order"] else " "
+            click.echo(
+                f" {mark}{s['order']:>5} {s['n_terms']:>6} {s['mae_mT']:>12.4f} "
+                f"{s['r2']:>8.5f} {s['max_error_mT']:>16.4f}"
+            )
+        below = rep["fraction_below_4mT"]
+        click.echo(
+            "  error below 4 mT on "
+            + ", ".join(
+                f"{v:.1%} of the workspace {k.replace('at_', 'at ')}" for k, v in below.items()
+            )
+        )
+    click.echo("wrote " + ", ".join(str(p) for p in paths.values()))
+
+
+@field.command("import-comsol")
+@COILS_OPTION
+@click.option(
+    "--small",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Small-coil export.",
+)
+@click.option(
+    "--medium",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Medium-coil export.",
+)
+@click.option(
+    "--large",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Large-coil export.",
+)
+@click.option(
+    "--current-a",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="Coil current (A) the exports were computed at.",
+)
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Output reference-map .npz, usable with 'magrun field fit --reference'.",
+)
+def field_import_comsol(
+    coils: Path | None,
+    small: Path | None,
+    medium: Path | None,
+    large: Path | None,
+    current_a: float,
+    out: Path,
+) -> None:
+    """Build reference maps from COMSOL plain-text exports, one per coil type."""
+    from magrun.field.comsol import import_comsol
+
+    system = load_coils(coils)
+    files = {
+        k: v for k, v in (("small", small), ("medium", medium), ("large", large)) if v is not None
+    }
+    missing = sorted({ch.coil_type for ch in system.channels} - set(files))
+    if missing:
+        raise InputError(f"the driven coil types need exports too: --{' --'.join(missing)}")
+    try:
+        maps = import_comsol(files, current_a, coils_meta=system.spec.model_dump(mode="json"))
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    maps.save(out)
+    click.echo(
+        f"wrote {out}: " + ", ".join(f"{k} {m.x.size} x {m.y.size}" for k, m in maps.maps.items())
+    )

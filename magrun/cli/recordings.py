@@ -1,0 +1,172 @@
+"""``magrun view``, ``magrun recover`` and ``magrun figures``: what is done with recordings."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from magrun.cli.common import InputError
+
+
+@click.command("view")
+@click.argument("recording", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--save", type=click.Path(dir_okay=False, path_type=Path),
+    help="Write an .rrd (an .mcap is converted) instead of opening the viewer.",
+)  # fmt: skip
+def view(recording: Path, save: Path | None) -> None:
+    """Open a recording (.rrd or .mcap) in the Rerun viewer, or save it as an .rrd."""
+    import shutil
+    import subprocess
+
+    suffix = recording.suffix.lower()
+    if suffix not in (".rrd", ".mcap"):
+        raise InputError(f"{recording}: not a recording (.rrd or .mcap)")
+    if suffix == ".mcap":
+        _check_mcap(recording)
+    rerun = _rerun_executable()
+    if save is None:
+        sys.exit(subprocess.call([rerun, str(recording)]))
+    if save.suffix.lower() != ".rrd":
+        raise InputError(f"--save {save}: the output must be an .rrd file")
+    if suffix == ".rrd":
+        shutil.copyfile(recording, save)
+    else:
+        _mcap_to_rrd(recording, save)
+    click.echo(f"wrote {save}")
+
+
+def _check_mcap(path: Path) -> None:
+    """An InputError naming ``path`` and the fix unless it is an indexed MCAP file."""
+    from mcap.reader import make_reader
+
+    from analysis.load import RECOVER_HINT
+
+    try:
+        with path.open("rb") as fh:
+            summary = make_reader(fh).get_summary()
+    except Exception as exc:  # mcap raises several types for damaged files
+        raise InputError(f"{path}: cannot be read: {RECOVER_HINT} ({exc})") from exc
+    if summary is None:
+        raise InputError(f"{path}: no summary or index: {RECOVER_HINT}")
+
+
+def _rerun_executable() -> str:
+    import shutil
+
+    return shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
+
+
+def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:
+    """Rerun's own MCAP importer (``rerun mcap convert``)."""
+    import subprocess
+
+    done = subprocess.run(
+        [_rerun_executable(), "mcap", "convert", str(mcap), "-o", str(rrd)],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if done.returncode != 0:
+        raise click.ClickException(f"rerun mcap convert failed: {done.stderr.strip()}")
+
+
+@click.command("recover")
+@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("dst", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--rrd", is_flag=True, help="Also regenerate DST's .rrd from the recovered MCAP.")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON object.")
+def recover_cmd(src: Path, dst: Path, rrd: bool, as_json: bool) -> None:
+    """Rebuild a complete, indexed MCAP file DST from a truncated or damaged SRC.
+
+    Every intact record is kept (a recorder killed mid-trial loses at most its open chunk,
+    about the last second); SRC is never modified. Prints how many messages were recovered
+    and how many bytes were not. Exit status 2 when SRC is not an MCAP file.
+    """
+    from magrun.recover import recover
+
+    if dst.suffix.lower() != ".mcap":
+        raise InputError(f"{dst}: the recovered file must be an .mcap")
+    try:
+        report = recover(src, dst)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
+    rrd_path = None
+    if rrd:
+        rrd_path = dst.with_suffix(".rrd")
+        _mcap_to_rrd(dst, rrd_path)
+    if as_json:
+        doc = {
+            "source": str(src), "recovered": str(dst), "rrd": str(rrd_path) if rrd_path else None,
+            "messages": report.messages, "per_topic": dict(report.per_topic),
+            "metadata": report.metadata, "complete": report.complete,
+            "bytes_total": report.bytes_total, "bytes_lost": report.bytes_lost,
+            "last_time_s": None if report.last_time_ns is None else report.last_time_ns / 1e9,
+            "problem": report.problem,
+        }  # fmt: skip
+        click.echo(json.dumps(doc))
+        return
+    click.echo(f"{src} -> {dst}: {report.summary()}")
+    if rrd_path is not None:
+        click.echo(f"wrote {rrd_path}")
+
+
+@click.command("figures")
+@click.argument(
+    "recordings", type=click.Path(exists=True, path_type=Path), default=Path("recordings")
+)
+@click.option(
+    "--out", type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder  [default: RECORDINGS/figures]",
+)  # fmt: skip
+@click.option(
+    "--zernike-data", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Field-fit figure data (magrun field fit writes it)  [default: the shipped fit]",
+)  # fmt: skip
+@click.option("--no-zernike", is_flag=True, help="Skip the Zernike field-model figure.")
+def figures(
+    recordings: Path, out: Path | None, zernike_data: Path | None, no_zernike: bool
+) -> None:
+    """The paper's figures, results.csv and report.md from a folder of recordings.
+
+    RECORDINGS is what `magrun run --out` wrote (a folder of protocol folders), one protocol
+    folder, or one .mcap file. Every figure for which recordings exist is drawn, as PNG and
+    PDF; the Zernike figure comes from the field fit. Unreadable recordings are named on
+    stderr and left out; the rest still make figures (exit status 1 then).
+    """
+    from tqdm import tqdm
+
+    import analysis
+    from analysis.report import report_markdown
+
+    out = out or (recordings / "figures" if recordings.is_dir() else recordings.parent)
+    try:
+        data = analysis.load(
+            recordings,
+            progress=lambda it: tqdm(list(it), desc="reading", unit="trial", disable=None),
+        )
+    except (FileNotFoundError, analysis.RecordingError) as exc:
+        raise InputError(str(exc)) from exc
+    for problem in data.problems:
+        click.echo(f"unreadable: {problem}", err=True)
+    if data.trials.empty:
+        raise InputError(f"{recordings}: no recordings found (run `magrun run PROTOCOL` first)")
+    z = None
+    if not no_zernike:
+        from magrun.field.fitting import FIGURE_FILE
+
+        path = zernike_data or Path(__file__).parents[1] / "field" / "data" / FIGURE_FILE
+        with np.load(path) as npz:
+            z = dict(npz)
+    written = analysis.figures.draw_all(data, out, zernike_data=z)
+    results = analysis.write_results(data, out / "results.csv")
+    report = out / "report.md"
+    report.write_text(report_markdown(data, written, out_dir=out))
+    for name, paths in written.items():
+        click.echo(f"{name:>18}: " + ", ".join(str(p) for p in paths))
+    click.echo(f"{'results':>18}: {results} ({len(data.trials)} trials)")
+    click.echo(f"{'report':>18}: {report}")
+    if data.problems:
+        raise click.ClickException(f"{len(data.problems)} recording(s) could not be read")

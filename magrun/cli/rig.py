@@ -1,0 +1,47 @@
+"""``magrun rig-emulator``: the simulated plant and camera behind the rig's line protocol."""
+
+from __future__ import annotations
+
+import click
+
+from magrun.cli.common import InputError
+
+
+@click.command("rig-emulator")
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option("--port", type=click.IntRange(0, 65535), default=5555, show_default=True,
+              help="TCP port (0: any free port, printed).")  # fmt: skip
+@click.option("--robot", default="magnet", show_default=True, help="A robot of robots.yaml.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Seeds the plant's parameter draw and the camera noise.")  # fmt: skip
+@click.option("--camera/--no-camera", default=True, show_default=True,
+              help="Serve rendered camera frames (GRAB).")  # fmt: skip
+@click.option("--drop-every", type=click.IntRange(min=0), default=0, show_default=True,
+              help="Fail every n-th GRAB, as a camera that drops frames (0: never).")  # fmt: skip
+def rig_emulator(
+    host: str, port: int, robot: str, seed: int, camera: bool, drop_every: int
+) -> None:
+    """Serve the simulated plant and camera over the rig's line protocol, in real time.
+
+    For testing the hardware path without coils: in another terminal,
+    `magrun run PROTOCOL --rig hardware --driver tcp://HOST:PORT`. The protocol is in
+    magrun/rigs/wire.py (and the README). Ctrl-C stops it.
+    """
+    from magrun.rigs.emulator import RigEmulator
+    from magrun.rigs.sim import SimRig
+    from magrun.robot import load_robots
+    from magrun.tracking.camera import CameraConfig
+
+    if robot not in load_robots():
+        raise InputError(f"unknown robot {robot!r}; robots.yaml has {', '.join(load_robots())}")
+    rig = SimRig.default(robot=robot, seed=seed, camera=CameraConfig() if camera else None)
+    try:
+        emulator = RigEmulator(rig, host, port, drop_every=drop_every)
+    except OSError as exc:
+        raise InputError(f"cannot listen on {host}:{port}: {exc}") from exc
+    h, p = emulator.address
+    click.echo(f"rig emulator: {robot}, {len(rig.channel_names)} channels, tcp://{h}:{p}")
+    try:
+        emulator.serve_forever()
+    except KeyboardInterrupt:
+        click.echo("rig emulator stopped")
