@@ -33,12 +33,13 @@ from typing import Any
 
 import numpy as np
 
+from magrun.control.base import Controller
 from magrun.control.estimation import KalmanConfig
 from magrun.control.methods import ControlConfig, make_controller
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
 from magrun.freespace import FreeSpace
-from magrun.loop import TrialLog, run_trial
+from magrun.loop import PoseTracker, TrialLog, run_trial
 from magrun.protocol import Conditions, ControllerSettings, Protocol, Trial, condition_slug
 from magrun.records import Tick
 from magrun.robot import RobotParams, load_robot
@@ -208,9 +209,9 @@ class TrialParts:
     scene: Scene
     free_space: FreeSpace
     config: ControlConfig
-    controller: Any  # magrun.control.base.Controller
-    rig: Any  # magrun.rigs.base.Rig (SimRig or HardwareRig)
-    tracker: Any  # magrun.tracking.tracker.Tracker, None: the rig's own poses
+    controller: Controller
+    rig: Any  # a Rig: SimRig, or HardwareRig (connected)
+    tracker: PoseTracker | None  # the UNet Tracker; None: the rig's own poses, or the exact one
     feedback: FluoroscopyMimic
     safety: SafetyLayer
     simulated: bool

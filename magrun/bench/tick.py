@@ -72,7 +72,7 @@ def bench_tick(
     rig, controller_ = parts.rig, parts.controller
     rig.observe = _timed(rig.observe, stages["render"])
     parts.tracker = _TimedTracker(parts.tracker, stages["track"])
-    controller_.step = _timed(controller_.step, stages["control"])
+    controller_.step = _timed(controller_.step, stages["control"])  # type: ignore[method-assign]
     plant: list[float] = []
     rig.apply = _timed(rig.apply, plant)
     rig.advance = _timed(rig.advance, plant)
