@@ -38,6 +38,7 @@ from magrun.control.estimation import KalmanConfig
 from magrun.control.methods import ControlConfig, make_controller
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
+from magrun.field.coils import CoilSystem
 from magrun.freespace import FreeSpace
 from magrun.loop import PoseTracker, TrialLog, run_trial
 from magrun.protocol import Conditions, ControllerSettings, Protocol, Trial, condition_slug
@@ -67,9 +68,9 @@ class Scene:
     half_width: float  # m, half the side of the square workspace
 
 
-def build_scene(protocol: Protocol) -> Scene:
-    """The reference trajectory and walls a protocol describes."""
-    from magrun.field.coils import CoilSystem
+def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
+    """The reference trajectory and walls a protocol describes, in the workspace of ``coils``
+    (default: the paper's coil system)."""
     from magrun.phantom import load_phantom
     from magrun.scene import out_and_back, s_trajectory
 
@@ -88,7 +89,7 @@ def build_scene(protocol: Protocol) -> Scene:
         else:
             points = np.asarray(traj.path, dtype=np.float64) * 1e-3
         reference = out_and_back(points, traj.speed_mm_s * 1e-3, traj.hold_s, traj.flip_s)
-    half_width = CoilSystem.load().workspace_half_width
+    half_width = (coils or CoilSystem.load()).workspace_half_width
     if phantom is not None:
         box = Walls.box(half_width)
         return Scene(
@@ -138,9 +139,10 @@ def make_rig(
     seed: int,
     camera: bool,
     watchdog_s: float = 0.1,
+    coils: CoilSystem | None = None,
 ) -> Any:
-    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``) or the hardware rig
-    a :class:`HardwareSpec` names (not yet connected)."""
+    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``coils``: default
+    the paper's) or the hardware rig a :class:`HardwareSpec` names (not yet connected)."""
     if isinstance(kind, HardwareSpec):
         from magrun.rigs.cameras import camera_source
         from magrun.rigs.drivers import load_driver
@@ -156,8 +158,9 @@ def make_rig(
     from magrun.tracking.camera import CameraConfig
 
     return SimRig.default(
-        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None
-    )
+        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None,
+        coils=coils,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------
@@ -267,7 +270,8 @@ def assemble(
     from magrun.tracking.tracker import Tracker
 
     protocol = trial.protocol
-    scene = build_scene(protocol)
+    coils = CoilSystem.load()  # the simulated rig's and the scene's; the models carry their own
+    scene = build_scene(protocol, coils)
     robot = load_robot(protocol.robot)
     config = control_config(protocol.controller, robot, trial.condition)
     if tune is not None:
@@ -279,7 +283,7 @@ def assemble(
     simulated = rig == "sim"
     the_rig = make_rig(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
-        protocol.safety.stall_timeout_ms * 1e-3,
+        protocol.safety.stall_timeout_ms * 1e-3, coils,
     )  # fmt: skip
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver

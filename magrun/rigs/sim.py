@@ -156,10 +156,11 @@ class SimRig(Rig):
         perturbation: Perturbation = DEFAULT_PERTURBATION,
         seed: int = 0,
         camera: CameraConfig | None = None,
+        coils: CoilSystem | None = None,
     ) -> SimRig:
         """The paper's rig with the shipped reference maps (``robot``: a robot of robots.yaml
-        or its parameters)."""
-        coils = CoilSystem.load()
+        or its parameters; ``coils``: the paper's coil system, already loaded)."""
+        coils = coils or CoilSystem.load()
         params = load_robot(robot) if isinstance(robot, str) else robot
         return cls(
             coils, ChannelGrid.load(coils), params, walls, perturbation, seed,
