@@ -27,6 +27,18 @@ from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+#: the bytes every MCAP file starts (and a finished one ends) with
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def is_mcap(path: str | Path) -> bool:
+    """Whether ``path`` starts like an MCAP file (its magic bytes); False if unreadable."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
+
 
 @dataclass
 class RecoveryReport:
@@ -83,6 +95,8 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
     src, dst = Path(src), Path(dst)
     if src.resolve() == dst.resolve():
         raise ValueError(f"{src}: write the recovered file elsewhere, never over the original")
+    if not is_mcap(src):
+        raise ValueError(f"{src}: not an MCAP file (it does not start with MCAP's magic bytes)")
     report = RecoveryReport(bytes_total=src.stat().st_size)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}

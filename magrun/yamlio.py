@@ -10,6 +10,8 @@ location as a path of keys and indices. Walking the path through the node tree g
 
 from __future__ import annotations
 
+import difflib
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -65,6 +67,37 @@ def _field_name(loc: tuple[int | str, ...]) -> str:
     return out or "(document)"
 
 
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The pydantic models an annotation can hold (through unions, Annotated, lists, dicts)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
+
+
+def _known_keys(model: type[BaseModel], parent: tuple[int | str, ...]) -> set[str]:
+    """The keys the models at ``parent`` (a pydantic error location) accept."""
+    models = [model]
+    for part in parent:
+        fields = [m.model_fields[part] for m in models if isinstance(part, str)
+                  and part in m.model_fields]  # fmt: skip
+        inner = [m for f in fields for m in _models_in(f.annotation)]
+        if inner:
+            models = inner
+        # else: a list index, a dict key or a union's tag: the same models hold
+    return {name for m in models for name in m.model_fields}
+
+
+def _message(model: type[BaseModel], err: Any) -> str:
+    """pydantic's message, with a "did you mean" for a misspelt key."""
+    msg = str(err["msg"])
+    loc = tuple(err["loc"])
+    if err["type"] == "extra_forbidden" and loc and isinstance(loc[-1], str):
+        close = difflib.get_close_matches(loc[-1], _known_keys(model, loc[:-1]), n=1)
+        if close:
+            msg += f"; did you mean '{close[0]}'?"
+    return msg
+
+
 def parse_yaml_model(
     text: str, model: type[M], source: str, context: dict[str, Any] | None = None
 ) -> M:
@@ -91,7 +124,7 @@ def parse_yaml_model(
         problems = []
         for err in exc.errors():
             line, loc = _locate(root, tuple(err["loc"]))
-            problems.append(f"{source}:{line}: {_field_name(loc)}: {err['msg']}")
+            problems.append(f"{source}:{line}: {_field_name(loc)}: {_message(model, err)}")
         raise YamlModelError(problems) from exc
 
 

@@ -463,3 +463,62 @@ def test_track_assembles_its_trial_as_run_does_for_the_same_condition(
         assert (parts.feedback.rate_hz, parts.feedback.sigma_position) == (5.0, 2e-3)
         assert parts.safety.config == from_run.safety.config
         assert parts.free_space.critical is None
+
+
+@pytest.mark.parametrize(
+    ("args", "message", "absent"),
+    [
+        (["recover", "{six}", "{tmp}/r.mcap"], "not an MCAP file", "struct"),
+        (["view", "{six}"], "not an MCAP file", "magrun recover"),
+        (["field", "fit", "--reference", "{notes}"], "not an .npz archive", "pickle"),
+        (["field", "fit", "--order", "small=x"], "got 'small=x'", "Traceback"),
+        (["track", "proposed", "--duration", "-1"], "Invalid value for '--duration'", "stack"),
+        (["validate", "{typo}"], "trails: Extra inputs are not permitted; did you mean 'trials'?",
+         "Traceback"),
+    ],
+)  # fmt: skip
+def test_bad_input_is_named_with_exit_2(
+    runner: CliRunner, tmp_path: Path, args: list[str], message: str, absent: str
+) -> None:
+    """Files that are not what they claim, malformed option values and a misspelt protocol
+    key: exit 2, a message that names the problem (and the fix), no traceback."""
+    six = tmp_path / "six.mcap"
+    six.write_bytes(b"abcdef")
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a reference map\n")
+    tiny = (Path(__file__).parent / "data" / "protocols" / "tiny.yaml").read_text()
+    typo = tmp_path / "typo.yaml"
+    typo.write_text(tiny.replace("trials:", "trails:"))
+    assert "trails:" in typo.read_text()
+    fields = {"six": six, "tmp": tmp_path, "notes": notes, "typo": typo}
+    result = runner.invoke(cli, [a.format(**fields) for a in args])
+    assert result.exit_code == 2, result.output
+    assert message in result.output
+    assert absent not in result.output
+    assert "Traceback" not in result.output
+
+
+def test_run_summary_names_trials_that_did_not_complete() -> None:
+    """Pending, interrupted and failed trials each get a line with their reason; a condition
+    with no complete trial shows dashes, never nan."""
+    from magrun.cli.protocols import _summary
+
+    base = {"protocol": "p", "ticks": 0, "dropped_ticks": 0, "wall_s": 1.0}
+    manifest = {
+        "trials": [
+            {**base, "path": "a/trial-0", "status": "ok", "rms_position_mm": 1.0,
+             "rms_orientation_deg": 2.0, "ticks": 10, "overruns": 1},
+            {**base, "path": "b/trial-0", "status": "interrupted",
+             "error": "stopped by SIGINT at t = 1.20 s"},
+            {**base, "path": "b/trial-1", "status": "pending"},
+            {**base, "path": "c/trial-0", "status": "failed", "error": None},
+        ]
+    }  # fmt: skip
+    lines = _summary(manifest)
+    text = "\n".join(lines)
+    assert "nan" not in text
+    assert lines[1].split()[:5] == ["a", "1/1", "1.000", "2.00", "10%"]
+    assert lines[2].split()[:5] == ["b", "0/2", "—", "—", "—"]
+    assert "INTERRUPTED b/trial-0: stopped by SIGINT at t = 1.20 s" in lines
+    assert "PENDING b/trial-1: not started (magrun run --resume runs it)" in lines
+    assert "FAILED c/trial-0: no error recorded" in lines

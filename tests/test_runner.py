@@ -519,9 +519,15 @@ def test_magrun_run_exits_128_plus_the_signal(
         time.sleep(0.2)
     time.sleep(1.0)  # into the first trial
     proc.send_signal(getattr(signal, signum))
-    _, err = proc.communicate(timeout=120)
+    summary, err = proc.communicate(timeout=120)
     assert proc.returncode == status, err
     assert "--resume" in err
+    assert f"[1/{len(load_protocol(path).expand())}] tiny/" in err  # no terminal: line per trial
+    # the summary names the interrupted trials and their reason; nothing reads "nan" or FAILED
+    assert "INTERRUPTED " in summary
+    assert "stopped by" in summary
+    assert "nan" not in summary
+    assert "FAILED" not in summary
     manifest = json.loads((out / "tiny" / "manifest.json").read_text())
     assert manifest["interrupted"] == signum
     stopped = [e for e in manifest["trials"] if e["status"] == "interrupted"]

@@ -123,8 +123,10 @@ def field_fit(
         result = fit_reference(
             system, maps, max_order=max_order, r2_saturation=r2_saturation, fixed_orders=fixed
         )
-    except (ValueError, KeyError) as exc:
-        raise InputError(str(exc).strip("'\"")) from exc
+    except KeyError as exc:  # str() of a KeyError quotes its message
+        raise InputError(str(exc.args[0])) from exc
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
     paths = result.save(out)
     if as_json:
         click.echo(json.dumps({**result.report, "files": {k: str(v) for k, v in paths.items()}}))

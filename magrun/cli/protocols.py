@@ -48,7 +48,8 @@ def protocol_schema(out: Path | None) -> None:
 
 
 class _RunProgress:
-    """A bar per protocol (trials) and one per running trial (ticks), on a terminal only."""
+    """On a terminal, a bar per protocol (trials) and one per running trial (ticks); otherwise
+    (a CI log, ``nohup``) one line on stderr per finished trial."""
 
     def __init__(self, name: str, total: int) -> None:
         from tqdm import tqdm
@@ -57,6 +58,8 @@ class _RunProgress:
         self.bar = tqdm(total=total, desc=name, unit="trial", position=0, disable=None)
         self.trials: dict[str, Any] = {}
         self.failed = 0
+        self.total, self.done = total, 0
+        self.lines = not sys.stderr.isatty()
 
     def tick(self, relpath: str, done: int, total: int) -> None:
         bar = self.trials.get(relpath)
@@ -74,9 +77,18 @@ class _RunProgress:
         if bar is not None:
             bar.close()
         self.failed += entry["status"] not in ("ok", "stopped")
+        self.done += 1
         self.bar.update(1)
         if self.failed:
             self.bar.set_postfix(failed=self.failed)
+        if self.lines:
+            rms = entry.get("rms_position_mm")
+            click.echo(
+                f"[{self.done}/{self.total}] {entry['protocol']}/{entry['path']}: "
+                f"{entry['status']}" + (f", RMS {rms:.3f} mm" if rms is not None else "")
+                + (f" ({entry['wall_s']:.0f} s)" if entry.get("wall_s") is not None else ""),
+                err=True,
+            )  # fmt: skip
 
     def close(self) -> None:
         for bar in self.trials.values():
@@ -85,7 +97,8 @@ class _RunProgress:
 
 
 def _summary(manifest: dict[str, Any]) -> list[str]:
-    """One line per condition: trials ok, mean RMS errors, overruns, drops, wall time."""
+    """One line per condition: trials ok, mean RMS errors, overruns, drops, wall time ("—"
+    where no trial of the condition completed); then every trial that did not complete."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for e in manifest["trials"]:
         groups.setdefault(e["path"].rsplit("/", 1)[0], []).append(e)
@@ -93,6 +106,10 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
     lines = [
         f"{'condition':<{width}}  ok   RMS mm  RMS deg  overrun  dropped  wall s",
     ]
+
+    def shown(value: float, spec: str, width: int) -> str:
+        return f"{value:{width}{spec}}" if math.isfinite(value) else f"{'—':>{width}}"
+
     for slug, entries in groups.items():
         ok = [e for e in entries if e["status"] == "ok"]
 
@@ -103,16 +120,21 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
         ticks = sum(e.get("ticks", 0) for e in ok)
         overrun = sum(e.get("overruns", 0) for e in ok) / ticks if ticks else math.nan
         lines.append(
-            f"{slug:<{width}}  {len(ok)}/{len(entries)}  {mean('rms_position_mm'):6.3f}"
-            f"  {mean('rms_orientation_deg'):7.2f}  {overrun:6.0%}"
+            f"{slug:<{width}}  {len(ok)}/{len(entries)}  {shown(mean('rms_position_mm'), '.3f', 6)}"
+            f"  {shown(mean('rms_orientation_deg'), '.2f', 7)}  {shown(overrun, '.0%', 7)}"
             f"  {sum(e.get('dropped_ticks', 0) for e in entries):7d}"
             f"  {sum(e.get('wall_s', 0.0) for e in entries):6.0f}"
         )
     for e in manifest["trials"]:
-        if e["status"] == "stopped":
-            lines.append(f"STOPPED {e['path']}: {e.get('error', '')}")
-        elif e["status"] != "ok":
-            lines.append(f"FAILED {e['path']}: {e.get('error', '')}")
+        status, error = e["status"], e.get("error") or ""
+        if status == "pending":
+            lines.append(f"PENDING {e['path']}: not started (magrun run --resume runs it)")
+        elif status == "interrupted":
+            lines.append(f"INTERRUPTED {e['path']}: {error or 'stopped before its end'}")
+        elif status == "stopped":
+            lines.append(f"STOPPED {e['path']}: {error or 'safety stop'}")
+        elif status != "ok":
+            lines.append(f"FAILED {e['path']}: {error or 'no error recorded'}")
         for warning in e.get("warnings") or []:
             lines.append(f"WARNING {e['path']}: {warning}")
     return lines

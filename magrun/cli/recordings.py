@@ -45,7 +45,10 @@ def _check_mcap(path: Path) -> None:
     from mcap.reader import make_reader
 
     from analysis.load import RECOVER_HINT
+    from magrun.recover import is_mcap
 
+    if not is_mcap(path):
+        raise InputError(f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)")
     try:
         with path.open("rb") as fh:
             summary = make_reader(fh).get_summary()

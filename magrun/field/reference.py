@@ -138,15 +138,20 @@ class ReferenceMaps:
             path = default_reference_path()
         try:
             # open the file ourselves: np.load leaks its handle on a corrupt archive
-            with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as data:
-                meta = json.loads(str(data["meta"]))
-                names = sorted({k.split(".")[0] for k in data.files if k != "meta"})
-                maps = {
-                    n: FieldMap(
-                        x=data[f"{n}.x"], y=data[f"{n}.y"], B=data[f"{n}.B"], dB=data[f"{n}.dB"]
-                    )
-                    for n in names
-                }
+            with open(path, "rb") as fh:
+                if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive
+                    raise ValueError("not an .npz archive (magrun field reference writes one)")
+                fh.seek(0)
+                with np.load(fh, allow_pickle=False) as data:
+                    meta = json.loads(str(data["meta"]))
+                    names = sorted({k.split(".")[0] for k in data.files if k != "meta"})
+                    maps = {
+                        n: FieldMap(
+                            x=data[f"{n}.x"], y=data[f"{n}.y"], B=data[f"{n}.B"],
+                            dB=data[f"{n}.dB"],
+                        )
+                        for n in names
+                    }  # fmt: skip
         except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable magrun reference-map file: {exc}") from exc
         return cls(maps=maps, meta=meta)
