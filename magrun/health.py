@@ -40,6 +40,9 @@ class HealthLimits:
     failed_solves: float = 0.01
     #: the estimate further than this from the actual pose, m (the estimate lost the robot)
     estimate_error: float = 5e-3
+    #: more ticks than this share whose measured compute exceeded the control period (the
+    #: controller, with tracking, is too slow for the rig at this rate)
+    overruns: float = 0.01
 
 
 def longest_run(mask: NDArray[np.bool_]) -> int:
@@ -146,6 +149,13 @@ def trial_health(
         warnings.append(f"{failed} failed solves in {n} ticks (the previous plan was used)")
     if longest > lim.saturation_s:
         warnings.append(f"a coil at its current limit for {longest:.1f} s without a break")
+    over = log.compute_time > dt
+    if n and np.count_nonzero(over) > lim.overruns * n:
+        warnings.append(
+            f"{np.count_nonzero(over)} of {n} ticks' compute exceeded the {dt * 1e3:.1f} ms"
+            f" control period (longest {log.compute_time.max() * 1e3:.1f} ms): too slow for"
+            " the rig at this rate"
+        )
     if worst > lim.estimate_error:
         i = int(np.nanargmax(err))
         warnings.append(

@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -111,7 +111,7 @@ def run_trial(
     tracker: PoseTracker | None = None,
     frame_due: Callable[[float], bool] | None = None,
     on_tick: Callable[[Tick], None] | None = None,
-    charge_compute: bool = False,
+    latency: float | Literal["measured"] = 0.0,
     clock: Callable[[], float] = time.perf_counter,
     stop: Callable[[], bool] | None = None,
     safety: SafetyLayer | None = None,
@@ -126,11 +126,13 @@ def run_trial(
     takes a frame: on the others the rig renders none, nothing is tracked, and the feedback
     gets nothing (no frame was due). Without it every tick has a frame.
 
-    ``charge_compute`` (for simulated rigs) makes the loop's timing honest: the wall time
-    ``c`` of tracking, feedback and the controller passes on the plant, with the previous
-    currents, before the new currents apply, and a tick lasts ``max(Δt, c)``: a controller
-    slower than the control rate runs slower, as on hardware. Without it the plant waits for
-    the controller (zero latency; the trial is then independent of the machine's speed).
+    ``latency`` (for simulated rigs) is the time, s, between a tick's observation and its
+    new currents: it passes on the plant with the previous currents before the new ones
+    apply, and a tick lasts ``max(Δt, latency)``. A number is declared and the trial stays
+    independent of the machine (0: the plant waits for the controller). ``"measured"``
+    charges the tick's wall-clock compute ``c`` (tracking, feedback, controller): a
+    controller slower than the control rate then runs slower, as on hardware, and the trial
+    depends on the machine's speed and load. The measured ``c`` is logged either way.
 
     ``on_tick`` receives a :class:`Tick` after each tick's currents are applied (the
     recorder's hook); it runs on the loop's thread, so it must be quick.
@@ -183,9 +185,10 @@ def run_trial(
         window = reference.pose(obs.t + offsets)
         out = controller.step(z, window)
         c = clock() - t0
-        period = max(dt, c) if charge_compute else dt
-        if charge_compute:
-            rig.advance(c)  # the previous currents drive the plant while the controller works
+        charged = c if latency == "measured" else float(latency)
+        period = max(dt, charged)
+        if charged > 0:
+            rig.advance(charged)  # the previous currents drive the plant meanwhile
         framed = tracker is None or take
         safety.check(obs.t, obs.pose, (camera_pose is not None) if framed else None)
         applied = rig.apply(safety.limit(out.currents, out.fault, obs.t))
@@ -211,7 +214,7 @@ def run_trial(
         if on_tick is not None:
             on_tick(tick)
         prediction = out.predicted
-        rest = period - c if charge_compute else dt
+        rest = period - charged
         if rest > 0:
             rig.advance(rest)
         t = obs.t + period

@@ -10,7 +10,7 @@ fluoroscopy mimic, seeded; the safety layer); the runner adds a recorder
 (:class:`~magrun.recording.TrialRecorder`), runs it and writes its manifest entry.
 Because a trial depends on nothing else, trials run in any order, in any process: a local
 process pool (``jobs``), or Ray on a cluster (:func:`ray_executor`), give the same recordings
-(up to the wall-clock fields: solve and compute times, and with ``charge_compute_time`` the
+(up to the wall-clock fields: solve and compute times; and with ``latency_ms: measured`` the
 plant's timing too).
 
 Output, per the recording contract::
@@ -96,7 +96,8 @@ def execute_trial(
             "robot_length_m": robot.length,
             "robot_diameter_m": robot.diameter,
             "control_rate_hz": protocol.controller.rate_hz,
-            "charge_compute_time": protocol.controller.charge_compute_time,
+            "latency_ms": _latency_ms(protocol.controller.latency),
+            "charge_compute_time": protocol.controller.latency == "measured",
             "feedback": "camera" if tracker is not None else "truth",
             "camera_frames": protocol.feedback.camera_frames if tracker is not None else "",
             "critical_boundary": scene.critical or "",
@@ -183,6 +184,11 @@ def execute_trial(
                 parts.rig.disconnect()
     entry["wall_s"] = time.perf_counter() - t0
     return entry
+
+
+def _latency_ms(latency: float | str) -> float | str:
+    """The declared latency as the recording states it: ms, or "measured"."""
+    return latency if isinstance(latency, str) else latency * 1e3
 
 
 def _signal_name(signum: int | None) -> str:

@@ -254,7 +254,7 @@ class TrialParts:
             horizon=self.horizon, duration=self.duration, progress=progress,
             tracker=self.tracker, on_tick=on_tick,
             frame_due=self.feedback.due if fluoroscopy_frames else None,
-            charge_compute=protocol.controller.charge_compute_time and self.simulated,
+            latency=protocol.controller.latency if self.simulated else 0.0,
             stop=stop, safety=self.safety,
         )  # fmt: skip
 

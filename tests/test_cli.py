@@ -173,7 +173,7 @@ def test_fit_refuses_maps_made_for_another_coil_system(runner: CliRunner, tmp_pa
 
 
 def test_track_json_reports_errors_per_method(runner: CliRunner) -> None:
-    args = ["track", "baseline2", "baseline3", "--duration", "2", "--no-charge-compute-time"]
+    args = ["track", "baseline2", "baseline3", "--duration", "2"]
     result = runner.invoke(cli, [*args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
@@ -229,7 +229,7 @@ def test_bench_nmpc_json(runner: CliRunner, monkeypatch: pytest.MonkeyPatch) -> 
 def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:
     """UNet tracking on rendered frames, 7.5 Hz, σ 2 mm: 16 measurements in 2 s, none lost."""
     args = ["track", "baseline2", "--duration", "2", "--camera", "--rate-hz", "7.5"]
-    result = runner.invoke(cli, [*args, "--sigma-mm", "2", "--no-charge-compute-time", "--json"])
+    result = runner.invoke(cli, [*args, "--sigma-mm", "2", "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
     assert doc["feedback"] == {"source": "unet camera tracking", "rate_hz": 7.5, "sigma_mm": 2.0}

@@ -55,6 +55,19 @@ def test_saturation_failed_solves_and_a_lost_estimate_are_reported() -> None:
     assert "t = 2.8 s" in warnings[2]
 
 
+def test_ticks_whose_compute_overran_the_period_are_flagged() -> None:
+    """1 overrunning tick in 100 is within the 1 % limit; 2 are flagged, with the longest."""
+    log = _log()
+    log.compute_time[5] = 0.05
+    assert trial_health(log, 0.04, 30.0)[1] == []
+    log.compute_time[7] = 0.061
+    _, warnings = trial_health(log, 0.04, 30.0)
+    assert warnings == [
+        "2 of 100 ticks' compute exceeded the 40.0 ms control period (longest 61.0 ms):"
+        " too slow for the rig at this rate"
+    ]
+
+
 def test_contact_with_the_critical_boundary_is_timed() -> None:
     """Three ticks with the capsule's side against the anterior arc: 0.12 s of contact."""
     phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 from click.testing import CliRunner
+from pydantic import ValidationError
 
 from magrun.cli import cli
 from magrun.phantom import load_phantom
@@ -221,3 +222,25 @@ def test_out_and_back_goes_holds_turns_and_returns() -> None:
 def test_the_committed_json_schema_is_current() -> None:
     # regenerate with: magrun protocol schema --out protocols/protocol.schema.json
     assert (ROOT / "protocols" / "protocol.schema.json").read_text() == json_schema()
+
+
+@pytest.mark.parametrize(
+    ("controller", "latency"),
+    [
+        ({}, 5e-3),  # the declared default
+        ({"latency_ms": 12.5}, 12.5e-3),
+        ({"latency_ms": "none"}, 0.0),
+        ({"latency_ms": "measured"}, "measured"),
+        ({"charge_compute_time": True}, "measured"),  # the older key
+        ({"charge_compute_time": False}, 0.0),
+    ],
+)
+def test_latency_is_declared_in_ms_or_measured(controller: dict, latency: object) -> None:
+    assert _protocol(controller=controller).controller.latency == pytest.approx(latency)
+
+
+def test_latency_and_the_older_key_together_are_refused() -> None:
+    with pytest.raises(ValidationError, match="latency_ms or the older charge_compute_time"):
+        _protocol(controller={"latency_ms": 5, "charge_compute_time": True})
+    with pytest.raises(ValidationError, match="latency_ms"):
+        _protocol(controller={"latency_ms": -1})

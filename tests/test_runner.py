@@ -349,7 +349,7 @@ class _LoggingRig:
 
 
 @pytest.mark.parametrize("compute_ticks", [0.25, 2.5])
-def test_charged_compute_time_delays_the_currents_and_stretches_overrunning_ticks(
+def test_measured_latency_delays_the_currents_and_stretches_overrunning_ticks(
     compute_ticks: float,
 ) -> None:
     controller = make_controller("baseline3")
@@ -358,7 +358,7 @@ def test_charged_compute_time_delays_the_currents_and_stretches_overrunning_tick
     times = iter(np.arange(1000) * c)  # the loop reads the clock before and after: c apart
     rig = _LoggingRig()
     log = run_trial(
-        controller, rig, s_trajectory(), duration=0.5, charge_compute=True,  # type: ignore[arg-type]
+        controller, rig, s_trajectory(), duration=0.5, latency="measured",  # type: ignore[arg-type]
         clock=lambda: float(next(times)),
     )  # fmt: skip
     period = max(dt, c)
@@ -370,6 +370,31 @@ def test_charged_compute_time_delays_the_currents_and_stretches_overrunning_tick
     assert first[1] == ("apply", 0.0)
     if c < dt:
         assert first[2] == ("advance", pytest.approx(dt - c))
+    assert len(log.t) == math.floor(0.5 / period + 1e-9) + 1
+
+
+@pytest.mark.parametrize("latency_ticks", [0.0, 0.125, 1.5])
+def test_declared_latency_ignores_the_clock(latency_ticks: float) -> None:
+    """A declared latency passes on the plant (old currents) whatever the controller's wall
+    time was: a clock that claims 3 ticks of compute per tick changes nothing but the logged
+    compute time, and the plant's schedule is that of the declared latency."""
+    controller = make_controller("baseline3")
+    dt = controller.dt
+    latency = latency_ticks * dt
+    slow = iter(np.arange(1000) * 3 * dt)
+    rig = _LoggingRig()
+    log = run_trial(
+        controller, rig, s_trajectory(), duration=0.5, latency=latency,  # type: ignore[arg-type]
+        clock=lambda: float(next(slow)),
+    )  # fmt: skip
+    period = max(dt, latency)
+    np.testing.assert_allclose(np.diff(log.t), period, rtol=1e-12)
+    np.testing.assert_allclose(log.compute_time, 3 * dt, rtol=1e-9)  # measured, logged
+    expected = [("apply", 0.0), ("advance", pytest.approx(dt))]
+    if latency > 0:
+        rest = [("advance", pytest.approx(period - latency))] if latency < dt else []
+        expected = [("advance", pytest.approx(latency)), ("apply", 0.0), *rest]
+    assert rig.calls[: len(expected)] == expected
     assert len(log.t) == math.floor(0.5 / period + 1e-9) + 1
 
 
@@ -537,3 +562,32 @@ def test_magrun_run_exits_128_plus_the_signal(
         counts, _, meta = read_mcap(out / "tiny" / entry["mcap"])
         assert counts["/robot/pose/actual"] == entry["ticks"]
         assert meta["recorder"]["status"] == "interrupted"
+
+
+def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jobs(
+    tmp_path: Path,
+) -> None:
+    """The same protocol and seed with the default declared latency (camera tracking, two
+    methods, two rates): run alone in one process, then with --jobs 2 beside two processes
+    that keep every core busy. Every pose, current and status message is identical (the
+    status without its wall-clock fields)."""
+    text = TINY.read_text().replace("latency_ms: none", "latency_ms: 5")
+    assert "latency_ms: 5" in text
+    path = tmp_path / "tiny.yaml"
+    path.write_text(text)
+    protocol = load_protocol(path)
+    quiet = run_protocol(protocol, tmp_path / "quiet", jobs=1)
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        loaded = run_protocol(protocol, tmp_path / "loaded", jobs=2)
+    finally:
+        for proc in burners:
+            proc.kill()
+            proc.wait()
+    assert [e["status"] for e in quiet["trials"]] == ["ok"] * 4
+    assert [e["status"] for e in loaded["trials"]] == ["ok"] * 4
+    for entry in quiet["trials"]:
+        _, a, _ = read_mcap(tmp_path / "quiet" / "tiny" / entry["mcap"])
+        _, b, _ = read_mcap(tmp_path / "loaded" / "tiny" / entry["mcap"])
+        assert len(a) == len(b) > 0
+        assert a == b, entry["path"]

@@ -36,7 +36,7 @@ def s_curve_protocol(ticks: int | None) -> Any:
             "methods": sorted({m for m, _ in NMPC_VARIANTS.values()}),
             "controller": {
                 "rate_hz": RATE_HZ,
-                "charge_compute_time": False,
+                "latency_ms": "none",
                 "kalman": {"measurement_sigma_mm": 1.0},
             },
             "feedback": {"camera": False},

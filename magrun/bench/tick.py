@@ -57,7 +57,9 @@ def bench_tick(
     cv2.setNumThreads(1)
     protocol = load_protocol(protocol_file)
     first = next(t for t in protocol.expand() if t.method == method)
-    controller = protocol.controller.model_copy(update={"charge_compute_time": False})
+    controller = protocol.controller.model_copy(
+        update={"latency_ms": "none", "charge_compute_time": None}
+    )
     protocol = protocol.model_copy(
         update={
             "sweep": Sweep(),

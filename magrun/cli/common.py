@@ -85,3 +85,21 @@ def say(prefix: str) -> Any:
 JSON_OPTION = click.option(
     "--json", "as_json", is_flag=True, help="Print the figures as one JSON object."
 )
+
+
+class Latency(click.ParamType):
+    """A latency in ms (a number ≥ 0), ``measured`` or ``none``, as a protocol's
+    ``controller.latency_ms``."""
+
+    name = "MS|measured|none"
+
+    def convert(self, value: Any, param: Any, ctx: Any) -> float | str:
+        if value in ("measured", "none") or isinstance(value, float):
+            return value
+        try:
+            ms = float(value)
+        except ValueError:
+            ms = -1.0
+        if not ms >= 0:
+            self.fail(f"{value!r}: a number of ms (0 or more), 'measured' or 'none'", param, ctx)
+        return ms

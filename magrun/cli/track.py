@@ -15,7 +15,8 @@ from typing import Any
 import click
 import numpy as np
 
-from magrun.cli.common import InputError, Progress
+from magrun.cli.common import InputError, Latency, Progress
+from magrun.protocol import DEFAULT_LATENCY_MS
 
 #: the command's control rate, Hz
 RATE_HZ = 25.0
@@ -38,7 +39,7 @@ def track_protocol(
     rate_hz: float,
     sigma_mm: float,
     camera: bool,
-    charge_compute_time: bool = True,
+    latency_ms: float | str = DEFAULT_LATENCY_MS,
 ) -> Any:
     """The condition ``magrun track`` runs, as a protocol (an InputError when it is not one)."""
     from pydantic import ValidationError
@@ -52,7 +53,7 @@ def track_protocol(
                 "robot": robot,
                 "trajectory": {"kind": "s_curve", "speed_mm_s": speed_mm_s},
                 "methods": methods,
-                "controller": {"rate_hz": RATE_HZ, "charge_compute_time": charge_compute_time},
+                "controller": {"rate_hz": RATE_HZ, "latency_ms": latency_ms},
                 "conditions": {
                     "tracking_rate_hz": None if math.isinf(rate_hz) else rate_hz,
                     "noise_sigma_mm": sigma_mm,
@@ -110,9 +111,10 @@ def frames_taken(rate_hz: float, t: np.ndarray) -> int:
     help="Render camera frames and track them with the UNet (default: the exact pose).",
 )
 @click.option(
-    "--charge-compute-time/--no-charge-compute-time", default=True, show_default=True,
-    help="Let the controller's real compute time pass on the plant before its currents apply"
-    " (as on hardware, and as a protocol's default); off: zero latency, machine-independent.",
+    "--latency-ms", type=Latency(), default=DEFAULT_LATENCY_MS, show_default=True,
+    help="The simulated rig's latency per tick, ms (a protocol's controller.latency_ms):"
+    " 'measured' charges the wall-clock compute instead (results then depend on the machine),"
+    " 'none' is 0.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the results as one JSON object.")
 def track(
@@ -124,7 +126,7 @@ def track(
     rate_hz: float,
     sigma_mm: float,
     camera: bool,
-    charge_compute_time: bool,
+    latency_ms: float | str,
     as_json: bool,
 ) -> None:
     """Track the paper's 43 x 43 mm S-trajectory on the simulated rig.
@@ -145,7 +147,7 @@ def track(
         )
     chosen = list(dict.fromkeys(methods)) or list(METHODS)
     protocol = track_protocol(
-        chosen, robot, duration, speed_mm_s, rate_hz, sigma_mm, camera, charge_compute_time
+        chosen, robot, duration, speed_mm_s, rate_hz, sigma_mm, camera, latency_ms
     )
     results = []
     for method in chosen:
@@ -182,7 +184,7 @@ def track(
             "robot": robot,
             "seed": seed,
             "speed_mm_s": speed_mm_s,
-            "charge_compute_time": charge_compute_time,
+            "latency_ms": latency_ms,
             "feedback": {
                 "source": "unet camera tracking" if camera else "exact pose",
                 "rate_hz": None if math.isinf(rate_hz) else rate_hz,
