@@ -591,3 +591,49 @@ def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jo
         _, b, _ = read_mcap(tmp_path / "loaded" / "tiny" / entry["mcap"])
         assert len(a) == len(b) > 0
         assert a == b, entry["path"]
+
+
+def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any) -> None:
+    """`magrun view FILE --web --port N` answers HTTP on 127.0.0.1:N and prints the URL."""
+    import os
+    import signal
+    import socket
+    import time
+    import urllib.request
+
+    out, manifest = tiny_run
+    rrd = out / "tiny" / manifest["trials"][0]["rrd"]
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "magrun.cli", "view", str(rrd), "--web", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    status = None
+    try:
+        deadline = time.monotonic() + 120
+        while status is None and time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=5) as reply:
+                    status = reply.status
+            except OSError:
+                time.sleep(0.5)
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)  # magrun and the rerun viewer it started
+        _, err = proc.communicate(timeout=30)
+    assert status == 200, err
+    assert f"http://127.0.0.1:{port}/?url=rerun" in err
+
+
+def test_view_without_a_display_points_to_web(
+    tiny_run: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out, manifest = tiny_run
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    result = CliRunner().invoke(cli, ["view", str(out / "tiny" / manifest["trials"][0]["rrd"])])
+    assert result.exit_code == 2
+    assert "no display" in result.output
+    assert "--web" in result.output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -18,8 +19,21 @@ from magrun.cli.common import InputError
     "--save", type=click.Path(dir_okay=False, path_type=Path),
     help="Write an .rrd (an .mcap is converted) instead of opening the viewer.",
 )  # fmt: skip
-def view(recording: Path, save: Path | None) -> None:
-    """Open a recording (.rrd or .mcap) in the Rerun viewer, or save it as an .rrd."""
+@click.option(
+    "--web", is_flag=True,
+    help="Serve Rerun's web viewer on 127.0.0.1 instead of opening a window (a headless "
+    "workstation, a remote server: forward the port over ssh); Ctrl-C stops it.",
+)  # fmt: skip
+@click.option(
+    "--port", type=click.IntRange(1, 65535), default=9090, show_default=True,
+    help="With --web: the web viewer's HTTP port.",
+)  # fmt: skip
+def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
+    """Open a recording (.rrd or .mcap) in the Rerun viewer, or save it as an .rrd.
+
+    Without a display (no DISPLAY or WAYLAND_DISPLAY on Linux) use --web, which serves the
+    viewer over HTTP on 127.0.0.1 and prints the address to open in a browser.
+    """
     import shutil
     import subprocess
 
@@ -29,15 +43,42 @@ def view(recording: Path, save: Path | None) -> None:
     if suffix == ".mcap":
         _check_mcap(recording)
     rerun = _rerun_executable()
-    if save is None:
-        sys.exit(subprocess.call([rerun, str(recording)]))
-    if save.suffix.lower() != ".rrd":
-        raise InputError(f"--save {save}: the output must be an .rrd file")
-    if suffix == ".rrd":
-        shutil.copyfile(recording, save)
-    else:
-        _mcap_to_rrd(recording, save)
-    click.echo(f"wrote {save}")
+    if save is not None:
+        if save.suffix.lower() != ".rrd":
+            raise InputError(f"--save {save}: the output must be an .rrd file")
+        if suffix == ".rrd":
+            shutil.copyfile(recording, save)
+        else:
+            _mcap_to_rrd(recording, save)
+        click.echo(f"wrote {save}")
+        return
+    if web:
+        grpc = _free_port()
+        url = f"http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
+        click.echo(f"serving {recording} at {url} (Ctrl-C stops)", err=True)
+        args = [rerun, str(recording), "--web-viewer", "--web-viewer-port", str(port),
+                "--bind", "127.0.0.1", "--port", str(grpc)]  # fmt: skip
+        try:
+            sys.exit(subprocess.call(args, env={**os.environ, "BROWSER": "true"}))
+        except KeyboardInterrupt:
+            sys.exit(130)
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise InputError(
+            "no display to open the viewer on (neither DISPLAY nor WAYLAND_DISPLAY is set); "
+            f"serve it to a browser instead: magrun view {recording} --web"
+        )
+    sys.exit(subprocess.call([rerun, str(recording), "--bind", "127.0.0.1"]))
+
+
+def _free_port() -> int:
+    """A TCP port free on 127.0.0.1 now."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
 
 
 def _check_mcap(path: Path) -> None:
