@@ -81,6 +81,11 @@ STREAM_COLORS = {
     "predicted": (40, 180, 200),
     "desired": (40, 190, 80),
 }
+#: the coils' current series: distinct colours (matplotlib's tab10, as the figures use)
+COIL_COLORS = [
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+]  # fmt: skip
 #: the interpreter's GIL switch interval while a recorder runs, s (see TrialRecorder.start)
 SWITCH_INTERVAL_S = 5e-4
 #: pose streams also drawn over the camera image
@@ -511,7 +516,10 @@ class TrialRecorder(Recorder):
                 )
         rec.log(
             "/coils/currents",
-            rr.SeriesLines(names=list(setup.channel_names)),
+            rr.SeriesLines(
+                names=list(setup.channel_names),
+                colors=[COIL_COLORS[i % len(COIL_COLORS)] for i in range(len(setup.channel_names))],
+            ),
             static=True,
         )
         for name, color in STREAM_COLORS.items():  # styles once; positions come in columns
@@ -672,7 +680,8 @@ def blueprint(with_camera: bool) -> Any:
     views.append(rrb.Spatial2DView(origin="/workspace", name="workspace from above (m)"))
     series = rrb.Vertical(
         rrb.TimeSeriesView(origin="/coils/currents", name="coil currents (A)"),
-        rrb.TimeSeriesView(origin="/errors", name="errors (mm, deg)"),
+        rrb.TimeSeriesView(origin="/errors/position_mm", name="position error (mm)"),
+        rrb.TimeSeriesView(origin="/errors/orientation_deg", name="orientation error (°)"),
         rrb.TimeSeriesView(origin="/controller", name="compute time (ms)"),
     )
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)

@@ -133,3 +133,21 @@ def test_jpeg_frames_reach_the_rrd_in_columns(tmp_path: Path) -> None:
     rec = _record(tmp_path / "jpeg", setup, _ticks(n, frame))
     assert _rrd_rows(rec.rrd_path)["/camera/image"] == math.ceil(n / 3)
     assert rec.stats.images == n
+
+
+def test_the_blueprint_plots_each_error_in_its_own_unit() -> None:
+    """Position (mm) and orientation (°) errors in separate time-series views, currents and
+    compute time in theirs; the workspace view always, the camera view with a camera."""
+    from magrun.recording import blueprint
+
+    for with_camera in (True, False):
+        spatial, series = blueprint(with_camera).root_container.contents
+        views = {v.origin: v.name for v in series.contents}
+        assert views == {
+            "/coils/currents": "coil currents (A)",
+            "/errors/position_mm": "position error (mm)",
+            "/errors/orientation_deg": "orientation error (°)",
+            "/controller": "compute time (ms)",
+        }
+        origins = [v.origin for v in spatial.contents]
+        assert origins == (["/camera", "/workspace"] if with_camera else ["/workspace"])
