@@ -10,8 +10,11 @@ protocol in a :class:`~analysis.load.Dataset` from what its recordings hold:
   orientation error against it, one line per method, mean ± std across trials (Figs. 7–9);
   when the sweep is over tracking rate with noise, a violin plot of the per-sample errors at
   the lowest rate with Holm-corrected Mann–Whitney stars against the proposed method (Fig. 9c);
-- otherwise: ``trajectories`` — (a) the workspace with the desired path, (b) actual and
-  NMPC-predicted paths (Fig. 6).
+- one condition and several methods (every ``--quick`` demo): ``comparison`` — (a) each
+  method's actual path over the desired path, (b) each method's position error over time,
+  (c) RMS position error per method, every trial a point, mean ± std;
+- otherwise (one method): ``trajectories`` — (a) the workspace with the desired path, (b)
+  actual and NMPC-predicted paths (Fig. 6).
 
 Units on every axis: mm, degrees, Hz, mT.
 """
@@ -159,14 +162,20 @@ def trajectories(data: Dataset, protocol: str) -> Figure:
         ax.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal")
     ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2, label="desired")
     ax_a.set_title(f"(a) workspace and desired path ({rec.trial.get('robot', 'robot')})")
+    ax_b.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=1, alpha=0.6, label="desired")
     ax_b.plot(*_xy_mm(s), color=COLORS["actual_vs_predicted"], lw=1.5, label="actual")
-    ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["predicted"], lw=1, ls="--", label="NMPC predicted")
-    _square_limits(ax_b, s, ("", "_pred", "_des"))
     r = data.trials.loc[data.trials["path"] == str(rec.path)].iloc[0]
-    ax_b.set_title(
-        f"(b) actual vs predicted: RMS {r['rms_prediction_position_mm']:.2f} mm, "
-        f"{r['rms_prediction_orientation_deg']:.1f}°"
-    )
+    rms_pred = float(r.get("rms_prediction_position_mm", math.nan))
+    if math.isfinite(rms_pred) and np.isfinite(s["x_pred"]).any():
+        ax_b.plot(*_xy_mm(s, "_pred"), color=COLORS["predicted"], lw=1, ls="--",
+                  label="NMPC predicted")  # fmt: skip
+        ax_b.set_title(
+            f"(b) actual vs predicted: RMS {rms_pred:.2f} mm, "
+            f"{r['rms_prediction_orientation_deg']:.1f}°"
+        )
+    else:  # a method that predicts nothing (the PID)
+        ax_b.set_title(f"(b) actual path ({rec.trial.get('method', '')}: no prediction)")
+    _square_limits(ax_b, s, ("", "_pred", "_des"))
     for ax in (ax_a, ax_b):
         ax.legend(loc="best", fontsize=8)
     return fig
@@ -191,6 +200,83 @@ def _draw_boundaries(ax: Any, rec: Recording) -> None:
             color=COLORS["critical" if critical else "boundary"], lw=2.2 if critical else 1.4,
             label=f"{name} (critical)" if critical else None,
         )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------
+# comparison: one condition, several methods
+
+
+def _representative(data: Dataset, protocol: str, method: str) -> Recording:
+    """The method's trial with the median RMS position error (not the best one)."""
+    ok = data.ok(protocol)
+    ok = ok[(ok["method"] == method) & ok["path"].isin(list(data.recordings))]
+    ok = ok.sort_values("rms_position_mm")
+    return data.recordings[ok["path"].iloc[(len(ok) - 1) // 2]]
+
+
+def comparison(data: Dataset, protocol: str) -> Figure:
+    """The methods side by side under the protocol's one condition: (a) each method's actual
+    path over the desired path, (b) position error over time, (c) RMS per method.
+
+    (a) and (b) show each method's trial with the median RMS error; (c) every trial.
+    """
+    _style()
+    trials = data.ok(protocol)
+    methods = _method_order(trials["method"].unique().tolist())
+    palette = _palette(methods)
+    fig = Figure(figsize=(15, 4.8), layout="constrained")
+    ax_a, ax_b, ax_c = fig.subplots(1, 3, width_ratios=[1.1, 1.5, 0.8])
+    shown: list[pd.DataFrame] = []
+    for k, method in enumerate(methods):
+        rec = _representative(data, protocol, method)
+        s = data.samples[data.samples["path"] == str(rec.path)]
+        shown.append(s)
+        if k == 0:
+            _draw_boundaries(ax_a, rec)
+            ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2.4, label="desired")
+        ax_a.plot(*_xy_mm(s), color=palette[method], lw=1.2, label=method)
+        ax_b.plot(s["t"], s["position_error_mm"], color=palette[method], lw=1.0, label=method)
+    _square_limits(ax_a, pd.concat(shown), ("", "_des"))
+    ax_a.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal", title="(a) actual paths")
+    ax_a.legend(loc="best", fontsize=8)
+    ax_b.set(xlabel="time (s)", ylabel="position error (mm)", title="(b) position error")
+    if len(shown) and max(float(x["position_error_mm"].max()) for x in shown) > 20 * min(
+        max(float(x["position_error_mm"].median()), 1e-6) for x in shown
+    ):
+        ax_b.set_yscale("log")
+    ax_b.legend(loc="best", fontsize=8)
+    sns.stripplot(
+        data=trials, x="method", y="rms_position_mm", hue="method", order=methods,
+        hue_order=methods, palette=palette, legend=False, size=6, ax=ax_c,
+    )  # fmt: skip
+    sns.pointplot(
+        data=trials, x="method", y="rms_position_mm", order=methods, color="black",
+        errorbar="sd" if trials.groupby("method").size().min() > 1 else None,
+        linestyle="none", markers="_", markersize=18, capsize=0.2, ax=ax_c,
+    )  # fmt: skip
+    n = trials.groupby("method").size()
+    ax_c.set(
+        xlabel="", ylabel="RMS position error (mm)",
+        title=f"(c) RMS, {n.min()}–{n.max()} trials each" if n.min() != n.max()
+        else f"(c) RMS, {n.min()} trial{'s' if n.min() > 1 else ''} each",
+    )  # fmt: skip
+    ax_c.set_ylim(0, float(trials["rms_position_mm"].max()) * 1.15)
+    ax_c.tick_params(axis="x", rotation=20)
+    cond = _condition_text(trials)
+    if cond:
+        fig.suptitle(cond, fontsize=11)
+    return fig
+
+
+def _condition_text(trials: pd.DataFrame) -> str:
+    """The trials' common condition, e.g. "tracking rate 3 Hz, noise σ 2 mm"."""
+    parts = []
+    for c, label in CONDITION_LABELS.items():
+        values = trials[c].dropna().unique() if c in trials else []
+        if len(values) == 1 and (c == "tracking_rate_hz" or float(values[0]) > 0):
+            name, unit = label.rsplit(" (", 1)
+            parts.append(f"{name} {float(values[0]):g} {unit.rstrip(')')}")
+    return ", ".join(parts)
 
 
 # --------------------------------------------------------------------------------------------
@@ -402,8 +488,9 @@ def envelope(data: Dataset, protocol: str) -> Figure:
 
 
 def figure_kind(data: Dataset, protocol: str) -> str:
-    """``envelope``, ``phantom``, ``sweep`` or ``trajectories``: which figure a protocol's
-    recordings make (``envelope``: a phantom under a sweep of rate and noise both)."""
+    """``envelope``, ``phantom``, ``sweep``, ``comparison`` or ``trajectories``: which figure
+    a protocol's recordings make (``envelope``: a phantom under a sweep of rate and noise
+    both)."""
     trials = data.ok(protocol)
     recs = [data.recordings[p] for p in trials["path"] if p in data.recordings]
     if any(r.boundaries for r in recs):
@@ -414,6 +501,8 @@ def figure_kind(data: Dataset, protocol: str) -> str:
         return "envelope" if both else "phantom"
     if swept_condition(trials) is not None:
         return "sweep"
+    if trials["method"].nunique() > 1:
+        return "comparison"
     return "trajectories"
 
 
@@ -421,6 +510,7 @@ KINDS: dict[str, Callable[[Dataset, str], Figure]] = {
     "envelope": envelope,
     "phantom": phantom,
     "sweep": sweep,
+    "comparison": comparison,
     "trajectories": trajectories,
 }
 

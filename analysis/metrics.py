@@ -51,6 +51,7 @@ class TrialRecord(Protocol):
 
     def control_period(self) -> float: ...  # s
 
+
 #: clearance, mm, at or below which the body counts as touching a boundary
 CONTACT_MM = 0.05
 #: the clearance percentile reported beside the minimum

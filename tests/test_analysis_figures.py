@@ -270,3 +270,52 @@ def test_envelope_figure_maps_rms_and_clearance_over_rate_and_noise(tmp_path: Pa
     clear = sorted(float(t) for t in texts if not t.startswith("touched"))
     # the desired path runs 0 mm off the wall line offset; clearance = 8 − offset − D/2 − L·0
     assert clear[0] == pytest.approx(data.trials["min_clearance_mm"].min(), abs=0.01)
+
+
+def _single_condition_set(root: Path) -> analysis.Dataset:
+    """A `--quick`-like set: one condition (3 Hz, 2 mm), the proposed method and the PID,
+    whose errors are 0.5 and 1.5 mm (the PID predicts nothing: NaN predictions)."""
+    cond = {"tracking_rate_hz": 3.0, "noise_sigma_mm": 2.0}
+    trials = [
+        SynthTrial("demo", "proposed", conditions=cond, offset=(0.5e-3, 0.0, 0.02)),
+        SynthTrial("demo", "baseline2", conditions=cond, offset=(0.0, 1.5e-3, 0.05),
+                   pred_offset=(math.nan,) * 3),
+    ]  # fmt: skip
+    return analysis.load(write_set(root, trials))
+
+
+def test_a_single_condition_gets_the_comparison_figure(tmp_path: Path) -> None:
+    """Every method's path over the desired one, its error over time and its RMS; no NaN in
+    any title, every legend entry drawn."""
+    data = _single_condition_set(tmp_path)
+    assert figures.figure_kind(data, "demo") == "comparison"
+    fig = figures.comparison(data, "demo")
+    ax_a, ax_b, ax_c = fig.axes
+    assert [t.get_text() for t in ax_a.get_legend().get_texts()] == [
+        "desired", "proposed", "baseline2"
+    ]  # fmt: skip
+    assert [line.get_label() for line in ax_a.get_lines()] == ["desired", "proposed", "baseline2"]
+    errors = {line.get_label(): np.asarray(line.get_ydata()) for line in ax_b.get_lines()}
+    assert set(errors) == {"proposed", "baseline2"}
+    assert np.median(errors["proposed"]) == pytest.approx(0.5, rel=1e-6)
+    assert np.median(errors["baseline2"]) == pytest.approx(1.5, rel=1e-6)
+    # (c): one point per trial at its RMS, the axis from zero
+    points = np.concatenate([c.get_offsets()[:, 1] for c in ax_c.collections])
+    assert sorted(points) == pytest.approx([0.5, 1.5], rel=1e-6)
+    assert ax_c.get_ylim()[0] == 0
+    titles = [ax.get_title() for ax in fig.axes] + [fig.get_suptitle()]
+    assert not any("nan" in t.lower() for t in titles), titles
+    assert fig.get_suptitle() == "tracking rate 3 Hz, noise σ 2 mm"
+
+
+def test_the_prediction_figure_of_a_method_without_predictions_says_so(tmp_path: Path) -> None:
+    data = _single_condition_set(tmp_path)
+    rec = data.trials[data.trials["method"] == "baseline2"]
+    only_pid = analysis.Dataset(
+        trials=rec, samples=data.samples[data.samples["path"].isin(rec["path"])],
+        recordings={p: data.recordings[p] for p in rec["path"]}, problems=[],
+    )  # fmt: skip
+    fig = figures.trajectories(only_pid, "demo")
+    _, ax_b = fig.axes
+    assert "no prediction" in ax_b.get_title()
+    assert "NMPC predicted" not in [line.get_label() for line in ax_b.get_lines()]
