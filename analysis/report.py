@@ -247,6 +247,13 @@ def _summary_table(trials: pd.DataFrame) -> pd.DataFrame:
     out["trials"] = trials.groupby(keys, dropna=False, sort=True).size().to_numpy()
     for v in present:
         mean, sd, n = agg[f"{v}_mean"], agg[f"{v}_std"], agg[f"{v}_count"]
+        if v == "overrun_fraction":  # a share of ticks: in %, as `magrun run` prints it
+            mean, sd = mean * 100, sd * 100
+            out[values[v]] = [
+                "" if c == 0 else (f"{m:.1f} ± {d:.1f} %" if c > 1 else f"{m:.1f} %")
+                for m, d, c in zip(mean, sd, n, strict=True)
+            ]
+            continue
         out[values[v]] = [
             "" if c == 0 else (f"{m:.3g} ± {d:.2g}" if c > 1 else f"{m:.3g}")
             for m, d, c in zip(mean, sd, n, strict=True)
@@ -320,7 +327,13 @@ def report_markdown(
                     _md_table(show, {"p_holm": ".2e", "effect_rb": "+.2f"}),
                 ]
             w = stats.trial_tests(trials)
-            if len(w):
+            if len(w) and w["p_holm"].isna().all():
+                lines += [
+                    "_Welch's t-test between trials needs at least two trials of each method; "
+                    "this run has fewer (a `--quick` run has one), so no test is reported._",
+                    "",
+                ]
+            elif len(w):
                 show = w[[*_varying(w), "reference", "method", "n_ref", "n_other", "t", "p_holm",
                           "stars"]]  # fmt: skip
                 lines += [

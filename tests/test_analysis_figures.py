@@ -319,3 +319,17 @@ def test_the_prediction_figure_of_a_method_without_predictions_says_so(tmp_path:
     _, ax_b = fig.axes
     assert "no prediction" in ax_b.get_title()
     assert "NMPC predicted" not in [line.get_label() for line in ax_b.get_lines()]
+
+
+def test_the_report_gives_overruns_in_percent_and_says_why_welch_is_missing(
+    tmp_path: Path,
+) -> None:
+    data = _single_condition_set(tmp_path)
+    text = report.report_markdown(data)
+    table = text[text.index("| method |", text.index("## demo")) :]
+    header = table.splitlines()[0].split(" | ")
+    row = next(line for line in table.splitlines() if line.startswith("| proposed"))
+    overruns = row.split(" | ")[header.index("overruns")]
+    assert overruns.endswith(" %"), overruns
+    assert "needs at least two trials of each method" in text
+    assert "Welch's t-test (Holm):" not in text
