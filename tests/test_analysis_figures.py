@@ -327,9 +327,13 @@ def test_the_report_gives_overruns_in_percent_and_says_why_welch_is_missing(
     data = _single_condition_set(tmp_path)
     text = report.report_markdown(data)
     table = text[text.index("| method |", text.index("## demo")) :]
-    header = table.splitlines()[0].split(" | ")
-    row = next(line for line in table.splitlines() if line.startswith("| proposed"))
-    overruns = row.split(" | ")[header.index("overruns")]
+
+    def cells(line: str) -> list[str]:
+        return [c.strip() for c in line.strip().strip("|").split("|")]
+
+    header = cells(table.splitlines()[0])
+    row = cells(next(line for line in table.splitlines() if line.startswith("| proposed")))
+    overruns = row[header.index("overruns")]
     assert overruns.endswith(" %"), overruns
     assert "needs at least two trials of each method" in text
     assert "Welch's t-test (Holm):" not in text
