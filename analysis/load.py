@@ -336,6 +336,9 @@ def load(
 ) -> Dataset:
     """Load recordings into a :class:`Dataset`.
 
+    A recording that cannot be read does not stop the others: it becomes a row with
+    ``status = "unreadable"`` and its :class:`RecordingError` is in ``problems``.
+
     Parameters
     ----------
     root : path or paths
@@ -344,9 +347,6 @@ def load(
         Wraps the iteration over trials (e.g. ``tqdm``).
     contact_mm : float
         Clearance, mm, at or below which the body counts as touching a boundary.
-
-    A recording that cannot be read does not stop the others: it becomes a row with
-    ``status = "unreadable"`` and its :class:`RecordingError` is in ``problems``.
     """
     roots = [root] if isinstance(root, (str, Path)) else list(root)
     items = [item for r in roots for item in find_recordings(r)]

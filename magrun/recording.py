@@ -1,6 +1,6 @@
 """Trial recordings: one MCAP file and one Rerun ``.rrd`` per trial, written off the loop.
 
-The layout and topics are the contract in ARCHITECTURE.md (and README, "Recording format"):
+The layout and topics are the contract (docs/protocols.md, "Recording format"):
 
 ================================  =============================  ==============================
 MCAP topic                        schema (protobuf)              Rerun entity

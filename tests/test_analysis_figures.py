@@ -56,7 +56,7 @@ def test_every_figure_renders_as_png_and_pdf(paper: analysis.Dataset, tmp_path: 
 
 
 def test_zernike_maps_are_drawn_with_y_up() -> None:
-    # the base stack's coils sit on +y (README, "Coil system"): |B| of its small coil is
+    # the base stack's coils sit on +y (docs/field.md, "Coil system"): |B| of its small coil is
     # largest on the image's top row (origin lower), and the map is the data transposed
     with np.load(ZERNIKE) as npz:
         data = dict(npz)

@@ -41,7 +41,7 @@ def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> N
     proposed_ipopt_reference: IPOPT to convergence, same problem; b5_lut / b5_lut_ipopt: the
     same two on the lookup tables) runs the S-trajectory closed loop on the simulated rig,
     one after the other, pinned to one core. The first run on a machine also compiles the
-    solvers' C code (about a minute for each IPOPT variant; cached, see README).
+    solvers' C code (about a minute for each IPOPT variant; cached, see docs/data.md).
     """
     from magrun.bench import nmpc
 

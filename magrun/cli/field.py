@@ -51,7 +51,7 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
     """Compute unit-current reference maps of every coil type with magpylib.
 
     To refresh the maps shipped with magrun, run from a source checkout with
-    --out magrun/field/data/reference_maps.npz (see README, "Data files").
+    --out magrun/field/data/reference_maps.npz (see docs/data.md).
     """
     from magrun.field.reference import compute_reference_maps
 

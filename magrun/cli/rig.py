@@ -25,7 +25,7 @@ def rig_emulator(
 
     For testing the hardware path without coils: in another terminal,
     `magrun run PROTOCOL --rig hardware --driver tcp://HOST:PORT`. The protocol is in
-    magrun/rigs/wire.py (and the README). Ctrl-C stops it.
+    magrun/rigs/wire.py (and docs/rigs.md). Ctrl-C stops it.
     """
     from magrun.rigs.emulator import RigEmulator
     from magrun.rigs.sim import SimRig

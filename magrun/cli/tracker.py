@@ -56,7 +56,7 @@ def _weights_option(help_text: str) -> Any:
     "--labels",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     default=None,
-    help="Keypoint annotations of --images (CSV; see the README).",
+    help="Keypoint annotations of --images (CSV; see docs/tracking.md).",
 )
 @click.option("--px-per-mm", type=float, default=None, help="Scale of --images, px per mm.")
 def tracker_train(

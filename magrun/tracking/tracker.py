@@ -49,7 +49,7 @@ U8 = NDArray[np.uint8]
 
 
 def default_weights_path() -> Path:
-    """The shipped weights, trained by ``magrun tracker train`` (see the README)."""
+    """The shipped weights, trained by ``magrun tracker train`` (see docs/tracking.md)."""
     return Path(str(resources.files("magrun") / "tracking" / "data" / "unet.npz"))
 
 
