@@ -68,6 +68,14 @@ class TrialLog:
     compute_time: FloatArray  # (n,) s, tracking + feedback + controller per tick
     interrupted: bool = False  # ended early by a stop request (currents ramped to zero)
     stop_reason: str = ""  # why the safety layer stopped the trial ("" : it ran to the end)
+    #: (n,) whether the tick took a camera frame (always, without a tracker or frame_due)
+    framed: NDArray[np.bool_] | None = None
+
+    @property
+    def tracking_lost(self) -> int:
+        """Frames taken in which the tracker did not find the robot."""
+        taken = np.ones(len(self.t), bool) if self.framed is None else self.framed
+        return int(np.count_nonzero(taken & ~np.isfinite(self.tracked[:, 0])))
 
     @property
     def position_error(self) -> FloatArray:
@@ -163,9 +171,12 @@ def run_trial(
     rows: dict[str, list[FloatArray]] = {k: [] for k in _LOG_ARRAYS}
     statuses: list[ControllerStatus] = []
     compute: list[float] = []
+    taken: list[bool] = []
     nan3 = np.full(3, np.nan)
     prediction: FloatArray | None = None
     offsets = np.arange(horizon + 1) * dt
+    measured = latency == "measured"
+    declared = 0.0 if measured else float(latency)
     k, t = 0, 0.0
     interrupted = False
     while t <= total + 1e-9 or (safety.tripped and not safety.at_rest):
@@ -185,12 +196,11 @@ def run_trial(
         window = reference.pose(obs.t + offsets)
         out = controller.step(z, window)
         c = clock() - t0
-        charged = c if latency == "measured" else float(latency)
+        charged = c if measured else declared
         period = max(dt, charged)
         if charged > 0:
             rig.advance(charged)  # the previous currents drive the plant meanwhile
-        framed = tracker is None or take
-        safety.check(obs.t, obs.pose, (camera_pose is not None) if framed else None)
+        safety.check(obs.t, obs.pose, (camera_pose is not None) if take else None)
         applied = rig.apply(safety.limit(out.currents, out.fault, obs.t))
         tick = Tick(
             k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
@@ -211,6 +221,7 @@ def run_trial(
             rows[name].append(np.asarray(value, dtype=np.float64))
         statuses.append(out.status)
         compute.append(c)
+        taken.append(take)
         if on_tick is not None:
             on_tick(tick)
         prediction = out.predicted
@@ -236,6 +247,7 @@ def run_trial(
         compute_time=np.array(compute),
         interrupted=interrupted,
         stop_reason=safety.reason,
+        framed=np.array(taken, dtype=bool),
     )
 
 

@@ -139,3 +139,17 @@ def test_phantom_walls_have_no_zero_length_segments() -> None:
     phantom = load_phantom(PROTOCOLS / "phantoms" / "channel_bends.yaml")
     seg = phantom.walls().segments
     assert np.all(np.hypot(*(seg[:, 1] - seg[:, 0]).T) > 1e-9)
+
+
+def test_tracking_lost_counts_only_the_frames_taken() -> None:
+    """Ticks without a frame have no tracked pose either; only frames taken and not found
+    count as lost."""
+    log = _log(10)
+    log.tracked[:, :] = np.nan
+    log.tracked[::3] = 0.0  # frames at ticks 0, 3, 6, 9 ...
+    log.framed = np.zeros(10, dtype=bool)
+    log.framed[::3] = True
+    log.framed[4] = True  # ... and one at tick 4 in which the robot was not found
+    assert log.tracking_lost == 1
+    log.framed = None  # no schedule recorded: every tick took a frame
+    assert log.tracking_lost == 6

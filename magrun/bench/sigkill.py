@@ -8,17 +8,17 @@ from typing import Any
 import numpy as np
 
 from magrun.bench.machine import machine
+from magrun.recover import MCAP_MAGIC
 
 
 def _wait_for_footer(path: Any, timeout: float) -> None:
     """Until ``path`` ends with MCAP's closing magic (its writer finished it) or ``timeout``."""
-    magic = b"\x89MCAP0\r\n"
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
             with open(path, "rb") as fh:
-                fh.seek(-len(magic), 2)
-                if fh.read() == magic:
+                fh.seek(-len(MCAP_MAGIC), 2)
+                if fh.read() == MCAP_MAGIC:
                     return
         except OSError:
             pass

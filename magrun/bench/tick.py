@@ -28,7 +28,7 @@ class _TimedTracker:
     """A tracker whose calls are timed into ``into``."""
 
     def __init__(self, tracker: Any, into: list[float]) -> None:
-        self.tracker, self.reset, self._call = tracker, tracker.reset, _timed(tracker, into)
+        self.reset, self._call = tracker.reset, _timed(tracker, into)
 
     def __call__(self, frame: Any) -> Any:
         return self._call(frame)

@@ -248,7 +248,7 @@ def run(
     if normal:
         click.echo(
             f"note: the control loop ran without real-time priority in {len(normal)} trial(s)"
-            ' (not permitted: see docs/rigs.md, Pacing)',
+            " (not permitted: see docs/rigs.md, Pacing)",
             err=True,
         )
     stopped = interrupt.requested()

@@ -72,14 +72,6 @@ def track_protocol(
         raise InputError("\n".join(problems)) from exc
 
 
-def frames_taken(rate_hz: float, t: np.ndarray) -> int:
-    """How many of the ticks at times ``t`` a camera frame was taken at (the mimic's grid)."""
-    from magrun.tracking.fluoroscopy import FluoroscopyMimic
-
-    probe = FluoroscopyMimic(rate_hz)
-    return sum(probe(float(tk), np.zeros(3)) is not None for tk in t)
-
-
 @click.command("track")
 @click.argument("methods", nargs=-1)
 @click.option("--robot", default="magnet", show_default=True, help="Robot in robots.yaml.")
@@ -156,7 +148,6 @@ def track(
         log = parts.run(progress=Progress(f"{method:>9}", not as_json))
         wall = time.perf_counter() - t0
         solve = log.solve_times
-        taken = frames_taken(rate_hz, log.t) if parts.tracker is not None else len(log.t)
         row = {
             "method": method,
             "ticks": len(log.t),
@@ -170,7 +161,7 @@ def track(
             "max_abs_current_a": float(np.abs(log.currents).max()),
             "measurements": int(np.isfinite(log.measured[:, 0]).sum()),
             # camera frames taken in which the tracker did not find the robot
-            "tracking_lost": int(taken - np.isfinite(log.tracked[:, 0]).sum()),
+            "tracking_lost": log.tracking_lost,
             "safety_stop": log.stop_reason,
             "wall_s": wall,
         }
