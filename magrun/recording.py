@@ -15,10 +15,12 @@ MCAP topic                        schema (protobuf)              Rerun entity
 ``<stream>`` is ``actual``, ``tracked``, ``measured``, ``estimated``, ``predicted`` and
 ``desired``. Log time is trial time in ns. MCAP metadata records: ``trial`` (protocol,
 method, condition values, seed, index, robot, software versions), ``protocol`` (the protocol
-as JSON), ``workspace`` (``boundaries``, m, and the square's ``half_width_m``, as JSON) and,
-at the end, ``recorder`` (ticks written, dropped, status). The ``.rrd`` also carries
-``/errors/*`` series and a blueprint: the camera view with paths overlaid, the workspace from
-above with its boundaries, and time series of currents and errors.
+as JSON), ``workspace`` (``boundaries``, m, and the square's ``half_width_m``, as JSON),
+``view`` (the recording's id and name, the camera's pixel mapping: what
+:func:`~magrun.rerun_log.rrd_from_mcap` needs) and, at the end, ``recorder`` (ticks written,
+dropped, status). The ``.rrd`` (:mod:`magrun.rerun_log`) also carries ``/errors/*`` series
+and a blueprint: the camera view with paths overlaid, the workspace from above with its
+boundaries, and time series of currents and errors.
 
 The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.records.Tick`; that
 only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
@@ -38,7 +40,7 @@ import sys
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any, Self
@@ -55,11 +57,13 @@ from mcap_protobuf.schema import register_schema
 from numpy.typing import NDArray
 
 from magrun.realtime import lower_priority, pin_thread
-from magrun.records import Tick
+from magrun.records import POSE_STREAMS, Tick
+from magrun.records import RecordingSetup as RecordingSetup  # re-exported: the recorder's API
+from magrun.records import yaw_of as yaw_of
+from magrun.rerun_log import RerunLog, view_metadata
 
 FloatArray = NDArray[np.float64]
 
-POSE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted", "desired")
 TOPICS = (
     "/camera/image",
     *(f"/robot/pose/{s}" for s in POSE_STREAMS),
@@ -72,26 +76,8 @@ COMPRESSION = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
-#: colours of the pose streams in the Rerun views (RGB)
-STREAM_COLORS = {
-    "actual": (230, 60, 60),
-    "tracked": (240, 160, 40),
-    "measured": (160, 80, 220),
-    "estimated": (60, 140, 230),
-    "predicted": (40, 180, 200),
-    "desired": (40, 190, 80),
-}
-#: the coils' current series: distinct colours (matplotlib's tab10, as the figures use)
-COIL_COLORS = [
-    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
-    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
-]  # fmt: skip
 #: the interpreter's GIL switch interval while a recorder runs, s (see TrialRecorder.start)
 SWITCH_INTERVAL_S = 5e-4
-#: pose streams also drawn over the camera image
-CAMERA_STREAMS = ("actual", "predicted", "measured")
-#: pose streams drawn as whole paths over the views at the end of a trial
-PATHS = ("actual", "predicted")
 SOFTWARE = ("magrun", "numpy", "casadi", "torch", "rerun-sdk", "mcap", "protobuf")
 
 
@@ -173,11 +159,6 @@ def pose_message(pose: FloatArray, t_ns: int) -> PoseInFrame:
     return msg
 
 
-def yaw_of(qz: float, qw: float) -> float:
-    """θ of a yaw quaternion (the inverse of :func:`pose_message`), in (−π, π]."""
-    return math.atan2(2 * qw * qz, 1 - 2 * qz * qz)
-
-
 def software_versions() -> dict[str, str]:
     out = {"python": platform.python_version()}
     for name in SOFTWARE:
@@ -201,25 +182,6 @@ class RecorderStats:
     dropped_ticks: int = 0
     images: int = 0
     error: str = ""
-
-
-@dataclass
-class RecordingSetup:
-    """Static facts a recording needs besides its ticks."""
-
-    trial: dict[str, Any]  # the ``trial`` metadata (JSON-able values)
-    channel_names: tuple[str, ...]
-    protocol_json: str = "{}"
-    boundaries: dict[str, FloatArray] = field(default_factory=dict)  # name -> (n, 2), m
-    workspace_half_width: float | None = None  # m, the square the robot may use
-    reference: FloatArray | None = None  # (n, 3) the desired path, for the views
-    camera: Any = None  # magrun.tracking.camera.Camera, for the pixel overlay
-    image_every: int = 1  # record every n-th camera frame (0: none)
-    jpeg_quality: int = 90
-    recording_id: str = ""
-    image_format: str = "jpeg"  # or "raw": foxglove.RawImage, every pixel
-    rerun_image_every: int = 1  # of the recorded frames, every n-th also into the .rrd
-    compression: str = "zstd"  # MCAP chunk compression: zstd, lz4 or none
 
 
 _STOP = object()
@@ -336,9 +298,10 @@ class TrialRecorder(Recorder):
                 "half_width_m": json.dumps(self.setup.workspace_half_width),
             },
         )
+        self._mcap.add_metadata("view", view_metadata(self.setup))
         before = pin_thread(self.writer_cpus)  # Rerun's threads, started here, inherit it
         try:
-            self._rerun_start()
+            self._rerun = RerunLog(self.rrd_path, self.setup)
         finally:
             pin_thread(before)
         self._last_flush = 0
@@ -375,8 +338,7 @@ class TrialRecorder(Recorder):
         )
         self._mcap.finish()
         self._mcap_file.close()
-        self._rec.flush(timeout_sec=60.0)
-        self._rec.disconnect()
+        self._rerun.close()
         return self.stats
 
     # ---- writer thread -----------------------------------------------------------------
@@ -390,8 +352,7 @@ class TrialRecorder(Recorder):
             if item is _STOP:
                 if not self.stats.error:
                     try:
-                        self._rerun_flush()
-                        self._rerun_paths()
+                        self._rerun.finish_paths()
                     except Exception as exc:
                         self.stats.error = f"{type(exc).__name__}: {exc}"
                 return
@@ -469,158 +430,12 @@ class TrialRecorder(Recorder):
         )
         _stamp(st, t_ns)
         self._put("/controller/status", st, t_ns)
-        self._rerun_tick(tick, poses, jpeg if rerun_image else None, rerun_image)
+        image = (jpeg if jpeg is not None else frame) if rerun_image else None
+        self._rerun.tick(tick.t, poses, tick.currents, tick.compute_time, image)
         if t_ns - self._last_flush >= self._flush_ns:
             self._mcap.flush()  # close the chunk: a crash loses at most flush_s of trial time
-            self._rerun_flush()
+            self._rerun.flush()
             self._last_flush = t_ns
-
-    # ---- Rerun -------------------------------------------------------------------------
-
-    def _rerun_start(self) -> None:
-        import rerun as rr
-
-        setup = self.setup
-        self._rec = rr.RecordingStream(
-            "magrun", recording_id=setup.recording_id or None, send_properties=False
-        )
-        self._rec.save(str(self.rrd_path), default_blueprint=blueprint(setup.camera is not None))
-        rec = self._rec
-        rec.log(
-            "/trial",
-            rr.TextDocument(
-                "\n".join(f"{k}: {_text(v)}" for k, v in setup.trial.items()),
-            ),
-            static=True,
-        )
-        for name, line in setup.boundaries.items():
-            rec.log(
-                f"/workspace/boundaries/{name}",
-                rr.LineStrips2D([line], colors=[(150, 80, 200)], radii=[0.00015]),
-                static=True,
-            )
-        if setup.reference is not None:
-            ref = setup.reference[:, :2]
-            rec.log(
-                "/workspace/reference",
-                rr.LineStrips2D([ref], colors=[(40, 190, 80, 120)], radii=[0.0001]),
-                static=True,
-            )
-            if setup.camera is not None:
-                rec.log(
-                    "/camera/reference",
-                    rr.LineStrips2D(
-                        [setup.camera.to_pixel(ref)], colors=[(40, 190, 80, 160)], radii=[0.5]
-                    ),
-                    static=True,
-                )
-        rec.log(
-            "/coils/currents",
-            rr.SeriesLines(
-                names=list(setup.channel_names),
-                colors=[COIL_COLORS[i % len(COIL_COLORS)] for i in range(len(setup.channel_names))],
-            ),
-            static=True,
-        )
-        for name, color in STREAM_COLORS.items():  # styles once; positions come in columns
-            rec.log(
-                f"/workspace/{name}",
-                rr.Points2D.from_fields(radii=[0.0002], colors=[color]),
-                static=True,
-            )
-            if setup.camera is not None and name in CAMERA_STREAMS:
-                style = rr.Points2D.from_fields(radii=[1.2], colors=[color])
-                rec.log(f"/camera/{name}", style, static=True)
-        self._paths: dict[str, list[FloatArray]] = {name: [] for name in PATHS}
-        self._rr_buffer: dict[str, tuple[list[float], list[Any]]] = {}
-
-    def _rerun_paths(self) -> None:
-        """The whole actual and predicted paths, static: drawn over both views at any time."""
-        import rerun as rr
-
-        cam = self.setup.camera
-        for name, points in self._paths.items():
-            if len(points) < 2:
-                continue
-            line = np.stack(points)
-            color = STREAM_COLORS[name]
-            self._rec.log(
-                f"/workspace/paths/{name}",
-                rr.LineStrips2D([line], colors=[color], radii=[0.0001]),
-                static=True,
-            )
-            if cam is not None:
-                self._rec.log(
-                    f"/camera/paths/{name}",
-                    rr.LineStrips2D([cam.to_pixel(line)], colors=[color], radii=[0.4]),
-                    static=True,
-                )
-
-    def _rerun_tick(
-        self, tick: Tick, poses: dict[str, FloatArray | None], jpeg: bytes | None, image: bool
-    ) -> None:
-        """Buffer the tick's Rerun rows, JPEG images included; raw images go out at once.
-
-        One ``rr.log`` costs ~0.1 ms here, a row of ``send_columns`` ~2 µs: the buffered
-        rows are sent every ``flush_s`` of trial time (with the MCAP chunk) and at close.
-        """
-        import rerun as rr
-
-        if image and tick.frame is not None:
-            if jpeg is not None:  # buffered: sent in columns with the series
-                self._rr_rows("/camera/image", tick.t, jpeg)
-            else:
-                self._rec.set_time("t", duration=tick.t)
-                self._rec.log("/camera/image", rr.Image(tick.frame))
-        cam = self.setup.camera
-        add = self._rr_rows
-        for name in ("actual", "tracked", "measured", "estimated", "predicted"):
-            pose = poses[name]
-            if pose is None:
-                continue
-            add(f"/workspace/{name}", tick.t, pose[:2])
-            if cam is not None and name in CAMERA_STREAMS:
-                add(f"/camera/{name}", tick.t, cam.to_pixel(pose[:2]))
-        for name in PATHS:
-            point = poses[name]
-            if point is not None:
-                self._paths[name].append(np.asarray(point[:2], dtype=np.float64))
-        add("/coils/currents", tick.t, tick.currents)
-        err = tick.actual - tick.desired
-        add("/errors/position_mm", tick.t, math.hypot(err[0], err[1]) * 1e3)
-        wrapped = (err[2] + math.pi) % (2 * math.pi) - math.pi
-        add("/errors/orientation_deg", tick.t, abs(math.degrees(wrapped)))
-        add("/controller/compute_ms", tick.t, tick.compute_time * 1e3)
-
-    def _rr_rows(self, entity: str, t: float, value: Any) -> None:
-        times, values = self._rr_buffer.setdefault(entity, ([], []))
-        times.append(t)
-        values.append(value)
-
-    def _rerun_flush(self) -> None:
-        """Send the buffered rows as columns: points for positions, scalars for series."""
-        import rerun as rr
-
-        for entity, (times, values) in self._rr_buffer.items():
-            if not times:
-                continue
-            index = [rr.TimeColumn("t", duration=np.asarray(times))]
-            if entity == "/camera/image":
-                columns = rr.EncodedImage.columns(
-                    blob=values, media_type=["image/jpeg"] * len(values)
-                )
-                self._rec.send_columns(entity, indexes=index, columns=columns)
-                times.clear()
-                values.clear()
-                continue
-            data = np.asarray(values, dtype=np.float64)
-            if entity.startswith(("/workspace/", "/camera/")):
-                columns = rr.Points2D.columns(positions=data.reshape(-1, 2))
-            else:
-                columns = rr.Scalars.columns(scalars=data.reshape(len(times), -1))
-            self._rec.send_columns(entity, indexes=index, columns=columns)
-            times.clear()
-            values.clear()
 
 
 def encode_jpeg(frame: NDArray[np.uint8], quality: int) -> bytes:
@@ -668,23 +483,6 @@ def raw_image_bytes(frame: NDArray[np.uint8], t_ns: int) -> bytes:
         if not n:
             break
     return b"".join((header, _RAW_DATA_TAG, bytes(length), pixels))
-
-
-def blueprint(with_camera: bool) -> Any:
-    """The ``.rrd``'s layout: camera with paths, workspace from above, currents and errors."""
-    import rerun.blueprint as rrb
-
-    views: list[Any] = []
-    if with_camera:
-        views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)"))
-    views.append(rrb.Spatial2DView(origin="/workspace", name="workspace from above (m)"))
-    series = rrb.Vertical(
-        rrb.TimeSeriesView(origin="/coils/currents", name="coil currents (A)"),
-        rrb.TimeSeriesView(origin="/errors/position_mm", name="position error (mm)"),
-        rrb.TimeSeriesView(origin="/errors/orientation_deg", name="orientation error (°)"),
-        rrb.TimeSeriesView(origin="/controller", name="compute time (ms)"),
-    )
-    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
 
 
 def _text(value: Any) -> str:

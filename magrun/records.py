@@ -1,12 +1,14 @@
 """The records a trial produces, shared by the loop that makes them and the recorder that
 writes them: small dataclasses, NumPy only (no control, rig or solver imports), so the
-recorder's writer process stays light.
+recorder's writer process stays light. Also what a recording needs besides its ticks
+(:class:`RecordingSetup`) and the pose streams it records.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,3 +60,32 @@ class Tick:
     frame: NDArray[np.uint8] | None = None
     latency: float = math.nan  # s, the tick's frame to the rig's ack (hardware rigs)
     safety_stop: str = ""  # the safety layer's reason, once it has tripped
+
+
+#: the recorded pose streams, each an MCAP topic ``/robot/pose/<stream>``
+POSE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted", "desired")
+
+
+def yaw_of(qz: float, qw: float) -> float:
+    """θ of a yaw quaternion (z, w components), in (−π, π]."""
+    return math.atan2(2 * qw * qz, 1 - 2 * qz * qz)
+
+
+@dataclass
+class RecordingSetup:
+    """Static facts a recording needs besides its ticks."""
+
+    trial: dict[str, Any]  # the ``trial`` metadata (JSON-able values)
+    channel_names: tuple[str, ...]
+    protocol_json: str = "{}"
+    boundaries: dict[str, FloatArray] = field(default_factory=dict)  # name -> (n, 2), m
+    workspace_half_width: float | None = None  # m, the square the robot may use
+    reference: FloatArray | None = None  # (n, 3) the desired path, for the views
+    camera: Any = None  # magrun.tracking.camera.Camera, for the pixel overlay
+    image_every: int = 1  # record every n-th camera frame (0: none)
+    jpeg_quality: int = 90
+    recording_id: str = ""
+    name: str = ""  # the recording's name in the viewer ("": from the trial metadata)
+    image_format: str = "jpeg"  # or "raw": foxglove.RawImage, every pixel
+    rerun_image_every: int = 1  # of the recorded frames, every n-th also into the .rrd
+    compression: str = "zstd"  # MCAP chunk compression: zstd, lz4 or none

@@ -117,6 +117,7 @@ def execute_trial(
             rerun_image_every=protocol.recording.rerun_image_every,
             compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
+            name=f"{trial.relpath} (seed {trial.seed})",
         )
         writer = protocol.recording.writer
         cam = the_rig.camera

@@ -138,7 +138,7 @@ def test_jpeg_frames_reach_the_rrd_in_columns(tmp_path: Path) -> None:
 def test_the_blueprint_plots_each_error_in_its_own_unit() -> None:
     """Position (mm) and orientation (°) errors in separate time-series views, currents and
     compute time in theirs; the workspace view always, the camera view with a camera."""
-    from magrun.recording import blueprint
+    from magrun.rerun_log import blueprint
 
     for with_camera in (True, False):
         spatial, series = blueprint(with_camera).root_container.contents

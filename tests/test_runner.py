@@ -593,8 +593,10 @@ def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jo
         assert a == b, entry["path"]
 
 
-def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any) -> None:
-    """`magrun view FILE --web --port N` answers HTTP on 127.0.0.1:N and prints the URL."""
+@pytest.mark.parametrize("kind", ["rrd", "mcap"])
+def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any, kind: str) -> None:
+    """`magrun view FILE --web --port N` answers HTTP on 127.0.0.1:N and prints the URL, for
+    an .rrd and for an .mcap (converted first); Ctrl-C (SIGINT) stops it."""
     import os
     import signal
     import socket
@@ -602,7 +604,7 @@ def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any) -> None:
     import urllib.request
 
     out, manifest = tiny_run
-    rrd = out / "tiny" / manifest["trials"][0]["rrd"]
+    rrd = out / "tiny" / manifest["trials"][0][kind]
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
@@ -620,8 +622,8 @@ def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any) -> None:
             except OSError:
                 time.sleep(0.5)
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)  # magrun and the rerun viewer it started
-        _, err = proc.communicate(timeout=30)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: magrun and the viewer it started
+        _, err = proc.communicate(timeout=60)
     assert status == 200, err
     assert f"http://127.0.0.1:{port}/?url=rerun" in err
 

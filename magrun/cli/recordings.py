@@ -31,11 +31,12 @@ from magrun.cli.common import InputError
 def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
     """Open a recording (.rrd or .mcap) in the Rerun viewer, or save it as an .rrd.
 
-    Without a display (no DISPLAY or WAYLAND_DISPLAY on Linux) use --web, which serves the
-    viewer over HTTP on 127.0.0.1 and prints the address to open in a browser.
+    An .mcap is converted to Rerun's format first, with the same layout, trial time axis and
+    name as the .rrd written beside it. Without a display (no DISPLAY or WAYLAND_DISPLAY on
+    Linux) use --web, which serves the viewer over HTTP on 127.0.0.1 and prints the address
+    to open in a browser.
     """
     import shutil
-    import subprocess
 
     suffix = recording.suffix.lower()
     if suffix not in (".rrd", ".mcap"):
@@ -43,6 +44,17 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
     if suffix == ".mcap":
         _check_mcap(recording)
     rerun = _rerun_executable()
+    if save is None and not web:
+        _check_display(recording)
+    if suffix == ".mcap" and save is None:
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="magrun-view-") as tmp:
+            rrd = Path(tmp) / (recording.stem + ".rrd")
+            click.echo(f"converting {recording} to Rerun's format ...", err=True)
+            _mcap_to_rrd(recording, rrd)
+            _open(rrd, rerun, web, port, shown=recording)
+        return
     if save is not None:
         if save.suffix.lower() != ".rrd":
             raise InputError(f"--save {save}: the output must be an .rrd file")
@@ -52,24 +64,40 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
             _mcap_to_rrd(recording, save)
         click.echo(f"wrote {save}")
         return
+    _open(recording, rerun, web, port, shown=recording)
+
+
+def _open(rrd: Path, rerun: str, web: bool, port: int, shown: Path) -> None:
+    """Run the viewer on ``rrd`` (``shown`` is what the user named) until it is closed."""
+    import subprocess
+
+    env = {**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")}
     if web:
         grpc = _free_port()
         url = f"http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
-        click.echo(f"serving {recording} at {url} (Ctrl-C stops)", err=True)
-        args = [rerun, str(recording), "--web-viewer", "--web-viewer-port", str(port),
+        click.echo(f"serving {shown} at {url} (Ctrl-C stops)", err=True)
+        args = [rerun, str(rrd), "--web-viewer", "--web-viewer-port", str(port),
                 "--bind", "127.0.0.1", "--port", str(grpc)]  # fmt: skip
-        try:
-            sys.exit(subprocess.call(args, env={**os.environ, "BROWSER": "true"}))
-        except KeyboardInterrupt:
-            sys.exit(130)
+        env["BROWSER"] = "true"  # print the address; open no browser
+    else:
+        args = [rerun, str(rrd), "--bind", "127.0.0.1"]
+    try:
+        code = subprocess.call(args, env=env)
+    except KeyboardInterrupt:
+        code = 130
+    if code:
+        sys.exit(code)
+
+
+def _check_display(shown: Path) -> None:
+    """An InputError pointing to --web where a window cannot open (Linux without a display)."""
     if sys.platform.startswith("linux") and not (
         os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
     ):
         raise InputError(
             "no display to open the viewer on (neither DISPLAY nor WAYLAND_DISPLAY is set); "
-            f"serve it to a browser instead: magrun view {recording} --web"
+            f"serve it to a browser instead: magrun view {shown} --web"
         )
-    sys.exit(subprocess.call([rerun, str(recording), "--bind", "127.0.0.1"]))
 
 
 def _free_port() -> int:
@@ -106,15 +134,13 @@ def _rerun_executable() -> str:
 
 
 def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:
-    """Rerun's own MCAP importer (``rerun mcap convert``)."""
-    import subprocess
+    """The MCAP as an .rrd with the recorder's views (:func:`magrun.rerun_log.rrd_from_mcap`)."""
+    from magrun.rerun_log import rrd_from_mcap
 
-    done = subprocess.run(
-        [_rerun_executable(), "mcap", "convert", str(mcap), "-o", str(rrd)],
-        capture_output=True, text=True, check=False,
-    )  # fmt: skip
-    if done.returncode != 0:
-        raise click.ClickException(f"rerun mcap convert failed: {done.stderr.strip()}")
+    try:
+        rrd_from_mcap(mcap, rrd)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
 
 
 @click.command("recover")

@@ -1,0 +1,459 @@
+"""The Rerun side of a recording: the ``.rrd``'s entities, their styles and its blueprint.
+
+:class:`RerunLog` writes one ``.rrd``. The trial recorder feeds it tick by tick while a trial
+runs; :func:`rrd_from_mcap` feeds it from a finished MCAP file (``magrun view FILE.mcap``,
+``magrun recover --rrd``), so a recording opened either way shows the same views, on the same
+time axis, under the same name.
+
+What the viewer shows (:func:`blueprint`):
+
+- **camera (px)**: the camera frames with the actual, predicted and measured positions and
+  the desired and actual paths drawn over them;
+- **workspace from above (m)**: x to the right, y up (as in the paper's figures and the
+  camera image), framed on the workspace square, with the boundaries, the desired path and
+  the actual and predicted paths. Rerun's 2D views draw y downward and ignore view
+  coordinates, so each entity under ``/workspace`` carries a static ``Transform3D`` that
+  mirrors y: the logged values stay the true ones (hover shows metres as recorded);
+- time series, one unit per plot: coil currents (A), position error (mm), orientation
+  error (°), compute time (ms).
+
+The timeline is ``t``, trial time from the start of the trial (a duration, not a date).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magrun.records import POSE_STREAMS, RecordingSetup, yaw_of
+
+if TYPE_CHECKING:
+    from magrun.tracking.camera import Camera
+
+FloatArray = NDArray[np.float64]
+
+#: colours of the pose streams in the Rerun views (RGB)
+STREAM_COLORS = {
+    "actual": (230, 60, 60),
+    "tracked": (240, 160, 40),
+    "measured": (160, 80, 220),
+    "estimated": (60, 140, 230),
+    "predicted": (40, 180, 200),
+    "desired": (40, 190, 80),
+}
+#: the coils' current series: distinct colours (matplotlib's tab10, as the figures use)
+COIL_COLORS = [
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+]  # fmt: skip
+#: pose streams drawn as points in the workspace view (desired is the static path)
+WORKSPACE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted")
+#: pose streams also drawn over the camera image
+CAMERA_STREAMS = ("actual", "predicted", "measured")
+#: pose streams drawn as whole paths over the views at the end of a trial
+PATHS = ("actual", "predicted")
+#: the entities directly under ``/workspace``, each mirrored in y for the y-up view
+WORKSPACE_ROOTS = (*WORKSPACE_STREAMS, "boundaries", "reference", "paths", "square", "legend")
+#: margin around the workspace square in the framed view, a fraction of the half-width
+FRAME_MARGIN = 0.12
+#: the workspace square's colour (RGB)
+SQUARE_COLOR = (150, 150, 150)
+#: the phantom's walls, and the critical one (the spinal cord's side), in the workspace view
+BOUNDARY_COLOR = (150, 80, 200)
+CRITICAL_COLOR = (225, 95, 20)
+#: sizes on screen, whatever the zoom: Rerun reads a negative radius as UI points
+POINT_RADIUS = -3.5
+LINE_RADIUS = -0.75
+PATH_RADIUS = -1.25
+
+
+def blueprint(with_camera: bool, half_width: float | None = None) -> Any:
+    """The ``.rrd``'s layout: camera, workspace from above (framed on the square of
+    ``half_width`` m when given), and one time-series view per unit."""
+    import rerun.blueprint as rrb
+
+    views: list[Any] = []
+    if with_camera:
+        views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)"))
+    bounds = None
+    if half_width is not None:
+        # the view's own y points down (each entity is mirrored into it): the legend under
+        # the square lies at +y here, with room for its names below the dots
+        r = half_width * (1 + FRAME_MARGIN)
+        bottom = half_width * (1 + 3 * FRAME_MARGIN)
+        bounds = rrb.VisualBounds2D(x_range=[-r, r], y_range=[-r, bottom])
+    views.append(
+        rrb.Spatial2DView(
+            origin="/workspace", name="workspace from above (m, y up)", visual_bounds=bounds
+        )
+    )
+    series = rrb.Vertical(
+        rrb.TimeSeriesView(origin="/coils/currents", name="coil currents (A)"),
+        rrb.TimeSeriesView(origin="/errors/position_mm", name="position error (mm)"),
+        rrb.TimeSeriesView(origin="/errors/orientation_deg", name="orientation error (°)"),
+        rrb.TimeSeriesView(origin="/controller", name="compute time (ms)"),
+    )
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
+
+
+def recording_name(trial: dict[str, Any]) -> str:
+    """A name for the viewer from the ``trial`` metadata: protocol, method, trial, seed."""
+    parts = [str(trial.get(k)) for k in ("protocol", "method") if trial.get(k) not in (None, "")]
+    if trial.get("trial") is not None:
+        parts.append(f"trial {trial['trial']}")
+    if trial.get("seed") is not None:
+        parts.append(f"seed {trial['seed']}")
+    return " · ".join(parts) or "magrun trial"
+
+
+class RerunLog:
+    """One trial's ``.rrd``: static scene at construction, rows per tick, paths at close.
+
+    Rows are buffered and sent as columns by :meth:`flush` (one ``rr.log`` costs ~0.1 ms,
+    a row of ``send_columns`` ~2 µs); the recorder flushes every second of trial time.
+    """
+
+    def __init__(self, path: str | Path, setup: RecordingSetup) -> None:
+        import rerun as rr
+
+        self.setup = setup
+        self.camera: Camera | None = setup.camera
+        self._rec = rec = rr.RecordingStream(
+            "magrun", recording_id=setup.recording_id or None, send_properties=False
+        )
+        rec.save(
+            str(path),
+            default_blueprint=blueprint(self.camera is not None, setup.workspace_half_width),
+        )
+        rec.send_recording_name(setup.name or recording_name(setup.trial))
+        rec.log(
+            "/trial",
+            rr.TextDocument("\n".join(f"{k}: {_text(v)}" for k, v in setup.trial.items())),
+            static=True,
+        )
+        flip = rr.Transform3D(scale=[1.0, -1.0, 1.0])
+        for name in WORKSPACE_ROOTS:
+            rec.log(f"/workspace/{name}", flip, static=True)
+        h = setup.workspace_half_width
+        if h is not None:
+            square = np.array([[-h, -h], [h, -h], [h, h], [-h, h], [-h, -h]])
+            rec.log(
+                "/workspace/square",
+                rr.LineStrips2D([square], colors=[SQUARE_COLOR], radii=[LINE_RADIUS]),
+                static=True,
+            )
+            # the views have no legend: one drawn under the square, a dot and a name per stream
+            names = [*WORKSPACE_STREAMS, "desired"]
+            xs = np.linspace(-h, h, len(names) + 1)[:-1] + h / len(names) / 2
+            rec.log(
+                "/workspace/legend",
+                rr.Points2D(
+                    np.column_stack([xs, np.full(len(names), -h * (1 + FRAME_MARGIN))]),
+                    colors=[STREAM_COLORS[n] for n in names], radii=[POINT_RADIUS],
+                    labels=names, show_labels=True,
+                ),
+                static=True,
+            )  # fmt: skip
+        critical = str(setup.trial.get("critical_boundary") or "")
+        for name, line in setup.boundaries.items():
+            is_critical = name == critical  # the wall not to touch: its own colour, named
+            rec.log(
+                f"/workspace/boundaries/{name}",
+                rr.LineStrips2D(
+                    [line], colors=[CRITICAL_COLOR if is_critical else BOUNDARY_COLOR],
+                    radii=[PATH_RADIUS], labels=[f"{name} (critical)" if is_critical else name],
+                    show_labels=is_critical,
+                ),
+                static=True,
+            )  # fmt: skip
+        if setup.reference is not None and len(setup.reference):
+            ref = np.asarray(setup.reference)[:, :2]
+            desired = STREAM_COLORS["desired"]
+            rec.log(
+                "/workspace/reference",
+                rr.LineStrips2D([ref], colors=[desired], radii=[PATH_RADIUS]),
+                static=True,
+            )
+            if self.camera is not None:
+                rec.log(
+                    "/camera/reference",
+                    rr.LineStrips2D(
+                        [self.camera.to_pixel(ref)], colors=[desired], radii=[LINE_RADIUS]
+                    ),
+                    static=True,
+                )
+        rec.log(
+            "/coils/currents",
+            rr.SeriesLines(
+                names=list(setup.channel_names),
+                colors=[COIL_COLORS[i % len(COIL_COLORS)] for i in range(len(setup.channel_names))],
+            ),
+            static=True,
+        )
+        for name in WORKSPACE_STREAMS:  # styles once; positions come in columns
+            color = STREAM_COLORS[name]
+            style = rr.Points2D.from_fields(
+                radii=[POINT_RADIUS], colors=[color], labels=[name], show_labels=False
+            )
+            rec.log(f"/workspace/{name}", style, static=True)
+            if self.camera is not None and name in CAMERA_STREAMS:
+                rec.log(f"/camera/{name}", style, static=True)
+        self._paths: dict[str, list[FloatArray]] = {name: [] for name in PATHS}
+        self._rows: dict[str, tuple[list[float], list[Any]]] = {}
+
+    def tick(
+        self,
+        t: float,
+        poses: dict[str, FloatArray | None],
+        currents: FloatArray,
+        compute_time: float,
+        image: bytes | NDArray[np.uint8] | None = None,
+    ) -> None:
+        """Buffer one tick's rows: ``poses`` by stream (x, y, θ; None where absent), the
+        currents (A), the compute time (s) and an image (JPEG bytes, buffered; or a raw
+        frame, sent at once)."""
+        import rerun as rr
+
+        if isinstance(image, bytes):
+            self._row("/camera/image", t, image)
+        elif image is not None:
+            self._rec.set_time("t", duration=t)
+            self._rec.log("/camera/image", rr.Image(image))
+        cam = self.camera
+        for name in WORKSPACE_STREAMS:
+            pose = poses.get(name)
+            if pose is None:
+                continue
+            self._row(f"/workspace/{name}", t, pose[:2])
+            if cam is not None and name in CAMERA_STREAMS:
+                self._row(f"/camera/{name}", t, cam.to_pixel(pose[:2]))
+        for name in PATHS:
+            point = poses.get(name)
+            if point is not None:
+                self._paths[name].append(np.asarray(point[:2], dtype=np.float64))
+        self._row("/coils/currents", t, currents)
+        actual, desired = poses.get("actual"), poses.get("desired")
+        if actual is not None and desired is not None:
+            err = np.asarray(actual) - np.asarray(desired)
+            self._row("/errors/position_mm", t, math.hypot(err[0], err[1]) * 1e3)
+            wrapped = (err[2] + math.pi) % (2 * math.pi) - math.pi
+            self._row("/errors/orientation_deg", t, abs(math.degrees(wrapped)))
+        self._row("/controller/compute_ms", t, compute_time * 1e3)
+
+    def _row(self, entity: str, t: float, value: Any) -> None:
+        times, values = self._rows.setdefault(entity, ([], []))
+        times.append(t)
+        values.append(value)
+
+    def flush(self) -> None:
+        """Send the buffered rows as columns: points for positions, scalars for series."""
+        import rerun as rr
+
+        for entity, (times, values) in self._rows.items():
+            if not times:
+                continue
+            index = [rr.TimeColumn("t", duration=np.asarray(times))]
+            if entity == "/camera/image":
+                columns = rr.EncodedImage.columns(
+                    blob=values, media_type=["image/jpeg"] * len(values)
+                )
+            else:
+                data = np.asarray(values, dtype=np.float64)
+                if entity.startswith(("/workspace/", "/camera/")):
+                    columns = rr.Points2D.columns(positions=data.reshape(-1, 2))
+                else:
+                    columns = rr.Scalars.columns(scalars=data.reshape(len(times), -1))
+            self._rec.send_columns(entity, indexes=index, columns=columns)
+            times.clear()
+            values.clear()
+
+    def finish_paths(self) -> None:
+        """Send what is buffered and the whole actual and predicted paths (static: drawn
+        over both views at any time)."""
+        import rerun as rr
+
+        self.flush()
+        cam = self.camera
+        for name, points in self._paths.items():
+            if len(points) < 2:
+                continue
+            line = np.stack(points)
+            color = STREAM_COLORS[name]
+            self._rec.log(
+                f"/workspace/paths/{name}",
+                rr.LineStrips2D([line], colors=[color], radii=[LINE_RADIUS]),
+                static=True,
+            )
+            if cam is not None:
+                self._rec.log(
+                    f"/camera/paths/{name}",
+                    rr.LineStrips2D([cam.to_pixel(line)], colors=[color], radii=[LINE_RADIUS]),
+                    static=True,
+                )
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Finish the file (what :meth:`finish_paths` has not sent is lost)."""
+        self._rec.flush(timeout_sec=timeout_s)
+        self._rec.disconnect()
+
+
+def view_metadata(setup: RecordingSetup) -> dict[str, str]:
+    """The MCAP ``view`` metadata record: what :func:`rrd_from_mcap` needs beyond the
+    messages (the recording's id and name, the camera's pixel mapping)."""
+    cam = setup.camera
+    camera = None
+    if cam is not None:
+        c = cam.config
+        camera = {
+            "width_px": c.width_px, "height_px": c.height_px, "px_per_mm": c.px_per_mm,
+            "center_m": list(cam.center),
+        }  # fmt: skip
+    return {
+        "recording_id": setup.recording_id,
+        "name": setup.name or recording_name(setup.trial),
+        "camera": json.dumps(camera),
+    }
+
+
+def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
+    """Write ``rrd`` from a magrun MCAP recording, with the recorder's entities and
+    blueprint; returns the number of ticks written.
+
+    Every pose, current and status message and every recorded image goes in. Recordings
+    made before the ``view`` metadata record existed get a name from the ``trial`` record
+    and no pixel overlay on the camera view.
+
+    Raises
+    ------
+    ValueError
+        ``mcap`` is not a readable, indexed magrun recording.
+    """
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    mcap = Path(mcap)
+    with mcap.open("rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        if reader.get_summary() is None:
+            raise ValueError(f"{mcap}: no summary or index (magrun recover rebuilds it)")
+        meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        if "trial" not in meta:
+            raise ValueError(f"{mcap}: no `trial` metadata record: not a magrun recording")
+        trial = {k: _json_or_text(v) for k, v in meta["trial"].items()}
+        workspace = meta.get("workspace", {})
+        boundaries = {
+            k: np.asarray(v, dtype=np.float64).reshape(-1, 2)
+            for k, v in (_json_or_text(workspace.get("boundaries", "{}")) or {}).items()
+        }
+        half_width = _json_or_text(workspace.get("half_width_m", "null"))
+        view = meta.get("view", {})
+        # one pass for the desired path (drawn from the start), one for the ticks
+        desired = [
+            _pose(msg)
+            for _s, _c, _m, msg in reader.iter_decoded_messages(
+                topics=["/robot/pose/desired"], log_time_order=True
+            )
+        ]
+        names: tuple[str, ...] = ()
+        for _s, _c, _m, msg in reader.iter_decoded_messages(
+            topics=["/coils/currents"], log_time_order=True
+        ):
+            names = tuple(msg.names)
+            break
+        setup = RecordingSetup(
+            trial=trial,
+            channel_names=names,
+            boundaries=boundaries,
+            workspace_half_width=float(half_width) if half_width is not None else None,
+            reference=np.asarray(desired) if desired else None,
+            camera=_camera(_json_or_text(view.get("camera", "null"))),
+            recording_id=view.get("recording_id") or f"{mcap.stem}@{mcap.parent.name}",
+            name=view.get("name") or recording_name(trial),
+        )
+        log = RerunLog(rrd, setup)
+        topics = [f"/robot/pose/{s}" for s in POSE_STREAMS]
+        topics += ["/coils/currents", "/controller/status", "/camera/image"]
+        ticks = 0
+        current: dict[str, Any] = {}
+        last_t: int | None = None
+        flushed = 0
+        for _schema, channel, message, msg in reader.iter_decoded_messages(
+            topics=topics, log_time_order=True
+        ):
+            if last_t is not None and message.log_time != last_t:
+                ticks += _send(log, last_t, current)
+                current = {}
+                if last_t - flushed >= 1_000_000_000:  # about once a second of trial
+                    log.flush()  # time, as the recorder does
+                    flushed = last_t
+            last_t = message.log_time
+            topic = channel.topic
+            if topic.startswith("/robot/pose/"):
+                current[topic.rsplit("/", 1)[1]] = _pose(msg)
+            elif topic == "/coils/currents":
+                current["currents"] = np.asarray(msg.currents, dtype=np.float64)
+            elif topic == "/controller/status":
+                current["compute_time"] = msg.compute_time
+            else:
+                current["image"] = _image(msg)
+        if last_t is not None:
+            ticks += _send(log, last_t, current)
+        log.finish_paths()
+        log.close()
+    return ticks
+
+
+def _send(log: RerunLog, t_ns: int, row: dict[str, Any]) -> int:
+    if "currents" not in row:
+        return 0  # a tick is its currents message; anything else alone is not a tick
+    t = t_ns / 1e9
+    poses = {k: v for k, v in row.items() if k not in ("currents", "compute_time", "image")}
+    log.tick(t, poses, row["currents"], row.get("compute_time", math.nan), row.get("image"))
+    return 1
+
+
+def _pose(msg: Any) -> FloatArray:
+    p, q = msg.pose.position, msg.pose.orientation
+    return np.array([p.x, p.y, yaw_of(q.z, q.w)])
+
+
+def _image(msg: Any) -> bytes | NDArray[np.uint8] | None:
+    if hasattr(msg, "format"):  # foxglove.CompressedImage
+        return bytes(msg.data) if msg.format.lower() in ("jpeg", "jpg") else None
+    channels = {"mono8": 1, "rgb8": 3}.get(msg.encoding)
+    if channels is None:
+        return None
+    pixels = np.frombuffer(msg.data, dtype=np.uint8)
+    frame = pixels.reshape(msg.height, msg.step)[:, : msg.width * channels]
+    return frame.reshape(msg.height, msg.width, channels).squeeze(-1 if channels == 1 else ())
+
+
+def _camera(doc: Any) -> Camera | None:
+    if not isinstance(doc, dict):
+        return None
+    from magrun.tracking.camera import Camera, CameraConfig
+
+    config = CameraConfig(
+        width_px=int(doc["width_px"]), height_px=int(doc["height_px"]),
+        px_per_mm=float(doc["px_per_mm"]),
+    )  # fmt: skip
+    cx, cy = doc.get("center_m", (0.0, 0.0))
+    return Camera(config, (float(cx), float(cy)))
+
+
+def _json_or_text(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)

@@ -1,0 +1,202 @@
+"""The ``.rrd`` a user opens: the y-up, framed workspace view, the legend, the recording's
+name and time axis, and the same views from an MCAP file as from the recorder."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from rerun.chunk import RrdReader
+from test_recording import _record, _rrd_rows, _ticks
+
+from magrun.cli import cli
+from magrun.recording import RecordingSetup
+from magrun.rerun_log import (
+    FRAME_MARGIN,
+    WORKSPACE_ROOTS,
+    blueprint,
+    recording_name,
+    rrd_from_mcap,
+)
+from magrun.tracking.camera import Camera
+
+HALF = 0.05  # m, the workspace square's half-width in these tests
+
+
+def _static(path: Path) -> dict[str, dict[str, Any]]:
+    """Every static component of an .rrd: entity -> component -> its first row's value."""
+    out: dict[str, dict[str, Any]] = defaultdict(dict)
+    for chunk in RrdReader(path).stream():
+        if not chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        for field, column in zip(batch.schema, batch.columns, strict=True):
+            if not field.name.startswith("rerun.controls"):
+                out[str(chunk.entity_path)][field.name] = column.to_pylist()[0]
+    return out
+
+
+def _timed(path: Path, entity: str, component: str) -> tuple[np.ndarray, np.ndarray]:
+    """One entity's rows on timeline ``t``: times (s) and values, sorted by time."""
+    times: list[float] = []
+    values: list[Any] = []
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static or str(chunk.entity_path) != entity:
+            continue
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        t = batch.column(names.index("t")).cast("int64").to_pylist()
+        times += [v / 1e9 for v in t]
+        values += batch.column(names.index(component)).to_pylist()
+    order = np.argsort(times, kind="stable")
+    return np.asarray(times)[order], np.asarray(values, dtype=object)[order]
+
+
+def _setup(n: int, **kw: Any) -> RecordingSetup:
+    """A phantom-like setup whose reference is the desired path of ``_ticks(n)``."""
+    ticks = _ticks(n, None)
+    return RecordingSetup(
+        trial={"protocol": "demo", "method": "proposed", "trial": 2, "seed": 7,
+               "critical_boundary": "anterior"},
+        channel_names=tuple("abcdefgh"),
+        boundaries={"anterior": np.array([[-0.01, 0.0], [0.01, 0.0]]),
+                    "posterior": np.array([[-0.01, 0.005], [0.01, 0.005]])},
+        workspace_half_width=HALF,
+        reference=np.stack([t.desired for t in ticks]),
+        recording_id="demo/proposed/trial-2@7",
+        name="demo/proposed/trial-2 (seed 7)",
+        **kw,
+    )  # fmt: skip
+
+
+def test_the_workspace_view_is_y_up_and_framed_on_the_square(tmp_path: Path) -> None:
+    """Rerun's 2D views draw +y downward; each drawn entity under /workspace is mirrored in
+    y exactly once, so a point at +y appears above the centre, as in the paper's figures
+    and the camera image. The view is framed on the square (drawn) with a margin."""
+    rec = _record(tmp_path / "t", _setup(30), _ticks(30, None))
+    static = _static(rec.rrd_path)
+    flips = {e for e, comps in static.items() if "Transform3D:scale" in comps}
+    assert flips == {f"/workspace/{name}" for name in WORKSPACE_ROOTS}
+    for entity in flips:
+        assert static[entity]["Transform3D:scale"] == [[1.0, -1.0, 1.0]]
+    drawn = [e for e in _rrd_rows(rec.rrd_path) if e.startswith("/workspace/")]
+    drawn += [
+        e for e, comps in static.items()
+        if e.startswith("/workspace/") and any(c.endswith((":strips", ":positions")) for c in comps)
+    ]  # fmt: skip
+    assert drawn
+    for entity in drawn:  # mirrored once: one flipped ancestor (or itself) below /workspace
+        parts = entity.split("/")
+        chain = {"/".join(parts[: i + 1]) for i in range(2, len(parts))}
+        assert len(chain & flips) == 1, entity
+    # a point logged at +y is drawn at −y in the view's own (y-down) coordinates: above
+    scale = np.array(static["/workspace/actual"]["Transform3D:scale"][0])
+    assert (scale * np.array([0.0, 0.02, 0.0]))[1] < 0
+    square = np.array(static["/workspace/square"]["LineStrips2D:strips"][0])
+    np.testing.assert_allclose(np.abs(square), HALF, rtol=1e-6)  # float32 in the .rrd
+    assert len(square) == 5
+    assert np.allclose(square[0], square[-1])
+    view = blueprint(True, HALF).root_container.contents[0].contents[1]
+    (bounds,) = view.properties["VisualBounds2D"].range.as_arrow_array().to_pylist()
+    lo_x, hi_x = bounds["x_range"]
+    lo_y, hi_y = bounds["y_range"]
+    assert lo_x == pytest.approx(-HALF * (1 + FRAME_MARGIN))
+    assert hi_x == -lo_x
+    assert lo_y == pytest.approx(-HALF * (1 + FRAME_MARGIN))
+    # the legend, under the square (below it on screen: +y in the view), is inside the frame
+    legend = np.array(static["/workspace/legend"]["Points2D:positions"])
+    assert -legend[:, 1].min() > HALF
+    assert -legend[:, 1].max() < hi_y
+
+
+def test_the_legend_names_every_pose_stream_in_its_colour(tmp_path: Path) -> None:
+    rec = _record(tmp_path / "t", _setup(5), _ticks(5, None))
+    static = _static(rec.rrd_path)
+    legend = static["/workspace/legend"]
+    for name, colour in zip(legend["Points2D:labels"], legend["Points2D:colors"], strict=True):
+        if name == "desired":
+            continue  # the path, drawn statically
+        assert static[f"/workspace/{name}"]["Points2D:colors"] == [colour], name
+    assert set(legend["Points2D:labels"]) == {
+        "actual", "tracked", "measured", "estimated", "predicted", "desired"
+    }  # fmt: skip
+    assert len(set(legend["Points2D:colors"])) == len(legend["Points2D:colors"])
+    colours = static["/coils/currents"]["SeriesLines:colors"]
+    assert len(set(colours)) == 8  # one distinct colour per coil
+    # the critical wall is named on the view and has its own colour
+    anterior = static["/workspace/boundaries/anterior"]
+    posterior = static["/workspace/boundaries/posterior"]
+    assert anterior["LineStrips2D:labels"] == ["anterior (critical)"]
+    assert anterior["LineStrips2D:show_labels"] == [True]
+    assert anterior["LineStrips2D:colors"] != posterior["LineStrips2D:colors"]
+
+
+def test_an_mcap_gives_the_recorders_views_name_and_time_axis(tmp_path: Path) -> None:
+    """``rrd_from_mcap`` rebuilds the .rrd from the MCAP alone: the same entities with the
+    same rows at the same trial times, the same static scene, name and recording id."""
+    frame = np.random.default_rng(3).integers(0, 256, (32, 48, 3), dtype=np.uint8)
+    n = 60  # 2.4 s at 25 Hz: flushes inside the trial and at its end
+    rec = _record(tmp_path / "t", _setup(n, camera=Camera()), _ticks(n, frame))
+    converted = tmp_path / "converted.rrd"
+    assert rrd_from_mcap(rec.mcap_path, converted) == n
+    assert _rrd_rows(converted) == _rrd_rows(rec.rrd_path)
+    a, b = _static(rec.rrd_path), _static(converted)
+    assert a.keys() == b.keys()
+    assert b["/__properties"]["RecordingInfo:name"] == ["demo/proposed/trial-2 (seed 7)"]
+    for entity in ("/workspace/square", "/workspace/legend", "/workspace/boundaries/anterior"):
+        assert b[entity] == a[entity], entity
+    for entity in ("/workspace/reference", "/workspace/paths/actual", "/camera/paths/actual"):
+        np.testing.assert_allclose(
+            np.array(b[entity]["LineStrips2D:strips"][0]),
+            np.array(a[entity]["LineStrips2D:strips"][0]),
+            rtol=1e-6,
+        )  # fmt: skip
+    for entity, component in [
+        ("/errors/position_mm", "Scalars:scalars"),
+        ("/coils/currents", "Scalars:scalars"),
+        ("/workspace/estimated", "Points2D:positions"),
+        ("/camera/measured", "Points2D:positions"),
+    ]:
+        t_a, v_a = _timed(rec.rrd_path, entity, component)
+        t_b, v_b = _timed(converted, entity, component)
+        np.testing.assert_allclose(t_b, t_a, rtol=0, atol=1e-9)  # trial time, s, from 0
+        if entity == "/errors/position_mm":  # a row per tick
+            np.testing.assert_allclose(t_a, np.arange(n) * 0.04, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(
+            np.array(v_b.tolist(), dtype=float), np.array(v_a.tolist(), dtype=float),
+            rtol=1e-9, atol=1e-12,
+        )  # fmt: skip
+    _t_img, blobs = _timed(converted, "/camera/image", "EncodedImage:blob")
+    _, blobs_a = _timed(rec.rrd_path, "/camera/image", "EncodedImage:blob")
+    assert len(blobs) == n
+    assert blobs.tolist() == blobs_a.tolist()
+
+
+def test_view_saves_an_mcap_as_an_rrd_and_refuses_a_foreign_mcap(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    rec = _record(tmp_path / "t", _setup(10), _ticks(10, None))
+    out = tmp_path / "out.rrd"
+    result = CliRunner().invoke(cli, ["view", str(rec.mcap_path), "--save", str(out)])
+    assert result.exit_code == 0, result.output
+    assert _static(out)["/__properties"]["RecordingInfo:name"] == ["demo/proposed/trial-2 (seed 7)"]
+    foreign = tmp_path / "foreign.mcap"
+    with foreign.open("wb") as fh:
+        writer = Writer(fh)
+        writer.start()
+        writer.finish()
+    result = CliRunner().invoke(cli, ["view", str(foreign), "--save", str(out)])
+    assert result.exit_code == 2
+    assert "no `trial` metadata record" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_recording_name_without_a_view_record() -> None:
+    """Recordings made before the ``view`` metadata record are named from ``trial``."""
+    trial = {"protocol": "spine", "method": "proposed", "trial": 0, "seed": 11}
+    assert recording_name(trial) == "spine · proposed · trial 0 · seed 11"
+    assert recording_name({}) == "magrun trial"
