@@ -32,6 +32,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -46,7 +47,7 @@ from pydantic import (
 )
 
 from magrun.control import METHODS
-from magrun.yamlio import load_yaml_model
+from magrun.yamlio import YamlModelError, load_yaml_model, validate_data
 
 #: most trials one protocol file may expand to: a sweep beyond it is refused before anything
 #: runs (10,000 trials of the paper's 52 s is six days of rig time)
@@ -570,9 +571,30 @@ def _resolve(value: str, info: ValidationInfo) -> Path:
     return path if path.is_absolute() or base is None else Path(base) / path
 
 
-def load_protocol(path: str | Path) -> Protocol:
-    """Read and validate a protocol file (raises :class:`~magrun.yamlio.YamlModelError`)."""
-    return load_yaml_model(path, Protocol, context={"base_dir": str(Path(path).parent)})
+def load_protocol(path: str | Path, overrides: Sequence[str] = ()) -> Protocol:
+    """Read and validate a protocol file (raises :class:`~magrun.yamlio.YamlModelError`).
+
+    ``overrides``: ``KEY=VALUE`` settings with dotted keys (``controller.rate_hz=20``),
+    applied to the file before it is validated (``magrun run --set``).
+    """
+    return load_yaml_model(
+        path, Protocol, context={"base_dir": str(Path(path).parent)}, overrides=overrides
+    )
+
+
+def protocol_from_json(text: str, source: str, overrides: Sequence[str] = ()) -> Protocol:
+    """A recorded protocol (the MCAP ``protocol`` record's JSON) with ``overrides`` applied,
+    validated again; ``source`` names it in errors."""
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise YamlModelError([f"{source}: the recorded protocol is not JSON: {exc}"]) from exc
+    if isinstance(data, dict) and isinstance(data.get("conditions"), dict):
+        # a dump lists every condition, the swept ones too (as their default): as written,
+        # a swept quantity is not also fixed
+        swept = {k for k, v in (data.get("sweep") or {}).items() if v is not None}
+        data["conditions"] = {k: v for k, v in data["conditions"].items() if k not in swept}
+    return validate_data(data, Protocol, source, overrides=overrides)
 
 
 def json_schema() -> str:

@@ -58,9 +58,19 @@ CAMERA_STREAMS = ("actual", "predicted", "measured")
 #: pose streams drawn as whole paths over the views at the end of a trial
 PATHS = ("actual", "predicted")
 #: the entities directly under ``/workspace``, each mirrored in y for the y-up view
-WORKSPACE_ROOTS = (*WORKSPACE_STREAMS, "boundaries", "reference", "paths", "square", "legend")
+WORKSPACE_ROOTS = (
+    *WORKSPACE_STREAMS, "boundaries", "reference", "paths", "square", "legend", "replay",
+)  # fmt: skip
+#: a replay's streams (``magrun replay``), drawn as ``/workspace/replay/<label>/<stream>``
+REPLAY_STREAMS = ("estimated", "predicted")
+#: colours of the replays' estimates, by label in order (their predictions lighter)
+REPLAY_COLORS = [(30, 50, 140), (200, 40, 140), (120, 90, 20), (0, 120, 100)]
 #: margin around the workspace square in the framed view, a fraction of the half-width
 FRAME_MARGIN = 0.12
+#: legend entries per row under the square, and the rows the framed view leaves room for
+LEGEND_PER_ROW = 4
+LEGEND_ROWS = 2
+LEGEND_ROW_STEP = 1.8  # between rows, in FRAME_MARGIN half-widths (a dot and its name)
 #: the workspace square's colour (RGB)
 SQUARE_COLOR = (150, 150, 150)
 #: the phantom's walls, and the critical one (the spinal cord's side), in the workspace view
@@ -72,9 +82,12 @@ LINE_RADIUS = -0.75
 PATH_RADIUS = -1.25
 
 
-def blueprint(with_camera: bool, half_width: float | None = None) -> Any:
+def blueprint(
+    with_camera: bool, half_width: float | None = None, with_replays: bool = False
+) -> Any:
     """The ``.rrd``'s layout: camera, workspace from above (framed on the square of
-    ``half_width`` m when given), and one time-series view per unit."""
+    ``half_width`` m when given), and one time-series view per unit; with replays, also
+    the estimation error of the recorded and the replayed estimators."""
     import rerun.blueprint as rrb
 
     views: list[Any] = []
@@ -85,19 +98,27 @@ def blueprint(with_camera: bool, half_width: float | None = None) -> Any:
         # the view's own y points down (each entity is mirrored into it): the legend under
         # the square lies at +y here, with room for its names below the dots
         r = half_width * (1 + FRAME_MARGIN)
-        bottom = half_width * (1 + 3 * FRAME_MARGIN)
+        bottom = half_width * (1 + (2.5 + (LEGEND_ROWS - 1) * LEGEND_ROW_STEP) * FRAME_MARGIN)
         bounds = rrb.VisualBounds2D(x_range=[-r, r], y_range=[-r, bottom])
     views.append(
         rrb.Spatial2DView(
             origin="/workspace", name="workspace from above (m, y up)", visual_bounds=bounds
         )
     )
-    series = rrb.Vertical(
+    plots = [
         rrb.TimeSeriesView(origin="/coils/currents", name="coil currents (A)"),
         rrb.TimeSeriesView(origin="/errors/position_mm", name="position error (mm)"),
         rrb.TimeSeriesView(origin="/errors/orientation_deg", name="orientation error (°)"),
         rrb.TimeSeriesView(origin="/controller", name="compute time (ms)"),
-    )
+    ]
+    if with_replays:
+        plots.insert(
+            2,
+            rrb.TimeSeriesView(
+                origin="/errors/estimation_mm", name="estimation error (mm): recorded, replayed"
+            ),
+        )
+    series = rrb.Vertical(*plots)
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
 
 
@@ -118,17 +139,28 @@ class RerunLog:
     a row of ``send_columns`` ~2 µs); the recorder flushes every second of trial time.
     """
 
-    def __init__(self, path: str | Path, setup: RecordingSetup) -> None:
+    def __init__(
+        self, path: str | Path, setup: RecordingSetup, replays: tuple[str, ...] = ()
+    ) -> None:
         import rerun as rr
 
         self.setup = setup
         self.camera: Camera | None = setup.camera
+        self.replays = replays
+        # every pose stream drawn: name (a key of tick's poses) -> colour
+        self._colors = {name: STREAM_COLORS[name] for name in WORKSPACE_STREAMS}
+        for i, label in enumerate(replays):
+            color = REPLAY_COLORS[i % len(REPLAY_COLORS)]
+            self._colors[f"replay/{label}/estimated"] = color
+            self._colors[f"replay/{label}/predicted"] = _lighter(color)
         self._rec = rec = rr.RecordingStream(
             "magrun", recording_id=setup.recording_id or None, send_properties=False
         )
         rec.save(
             str(path),
-            default_blueprint=blueprint(self.camera is not None, setup.workspace_half_width),
+            default_blueprint=blueprint(
+                self.camera is not None, setup.workspace_half_width, bool(replays)
+            ),
         )
         rec.send_recording_name(setup.name or recording_name(setup.trial))
         rec.log(
@@ -148,14 +180,18 @@ class RerunLog:
                 static=True,
             )
             # the views have no legend: one drawn under the square, a dot and a name per stream
-            names = [*WORKSPACE_STREAMS, "desired"]
-            xs = np.linspace(-h, h, len(names) + 1)[:-1] + h / len(names) / 2
+            colors = {**self._colors, "desired": STREAM_COLORS["desired"]}
+            names = [n for n in colors if not n.endswith("/predicted")]  # one per replay
+            col = np.arange(len(names)) % LEGEND_PER_ROW
+            row = np.arange(len(names)) // LEGEND_PER_ROW
+            xs = -h + (col + 0.5) * (2 * h / LEGEND_PER_ROW)
+            ys = -h * (1 + FRAME_MARGIN * (1 + LEGEND_ROW_STEP * row))
             rec.log(
                 "/workspace/legend",
                 rr.Points2D(
-                    np.column_stack([xs, np.full(len(names), -h * (1 + FRAME_MARGIN))]),
-                    colors=[STREAM_COLORS[n] for n in names], radii=[POINT_RADIUS],
-                    labels=names, show_labels=True,
+                    np.column_stack([xs, ys]),
+                    colors=[colors[n] for n in names], radii=[POINT_RADIUS],
+                    labels=[_legend_name(n) for n in names], show_labels=True,
                 ),
                 static=True,
             )  # fmt: skip
@@ -187,6 +223,15 @@ class RerunLog:
                     ),
                     static=True,
                 )
+        if replays:
+            estimators = ["recorded", *replays]
+            for name in estimators:
+                key = "estimated" if name == "recorded" else f"replay/{name}/estimated"
+                rec.log(
+                    f"/errors/estimation_mm/{name}",
+                    rr.SeriesLines(names=[name], colors=[self._colors[key]]),
+                    static=True,
+                )
         rec.log(
             "/coils/currents",
             rr.SeriesLines(
@@ -195,15 +240,17 @@ class RerunLog:
             ),
             static=True,
         )
-        for name in WORKSPACE_STREAMS:  # styles once; positions come in columns
-            color = STREAM_COLORS[name]
+        for name, color in self._colors.items():  # styles once; positions come in columns
             style = rr.Points2D.from_fields(
-                radii=[POINT_RADIUS], colors=[color], labels=[name], show_labels=False
-            )
+                radii=[POINT_RADIUS], colors=[color], labels=[_legend_name(name)],
+                show_labels=False,
+            )  # fmt: skip
             rec.log(f"/workspace/{name}", style, static=True)
-            if self.camera is not None and name in CAMERA_STREAMS:
+            if self.camera is not None and _on_camera(name):
                 rec.log(f"/camera/{name}", style, static=True)
-        self._paths: dict[str, list[FloatArray]] = {name: [] for name in PATHS}
+        self._paths: dict[str, list[FloatArray]] = {
+            name: [] for name in (*PATHS, *(f"replay/{r}/estimated" for r in replays))
+        }
         self._rows: dict[str, tuple[list[float], list[Any]]] = {}
 
     def tick(
@@ -225,19 +272,28 @@ class RerunLog:
             self._rec.set_time("t", duration=t)
             self._rec.log("/camera/image", rr.Image(image))
         cam = self.camera
-        for name in WORKSPACE_STREAMS:
+        for name in self._colors:
             pose = poses.get(name)
             if pose is None:
                 continue
             self._row(f"/workspace/{name}", t, pose[:2])
-            if cam is not None and name in CAMERA_STREAMS:
+            if cam is not None and _on_camera(name):
                 self._row(f"/camera/{name}", t, cam.to_pixel(pose[:2]))
-        for name in PATHS:
+        for name, path in self._paths.items():
             point = poses.get(name)
             if point is not None:
-                self._paths[name].append(np.asarray(point[:2], dtype=np.float64))
+                path.append(np.asarray(point[:2], dtype=np.float64))
+        actual = poses.get("actual")
+        if self.replays and actual is not None:  # colours as the streams (set at start)
+            for name, key in [("recorded", "estimated")] + [
+                (r, f"replay/{r}/estimated") for r in self.replays
+            ]:
+                est = poses.get(key)
+                if est is not None:
+                    d = np.asarray(est) - np.asarray(actual)
+                    self._row(f"/errors/estimation_mm/{name}", t, math.hypot(d[0], d[1]) * 1e3)
         self._row("/coils/currents", t, currents)
-        actual, desired = poses.get("actual"), poses.get("desired")
+        desired = poses.get("desired")
         if actual is not None and desired is not None:
             err = np.asarray(actual) - np.asarray(desired)
             self._row("/errors/position_mm", t, math.hypot(err[0], err[1]) * 1e3)
@@ -283,7 +339,7 @@ class RerunLog:
             if len(points) < 2:
                 continue
             line = np.stack(points)
-            color = STREAM_COLORS[name]
+            color = self._colors[name]
             self._rec.log(
                 f"/workspace/paths/{name}",
                 rr.LineStrips2D([line], colors=[color], radii=[LINE_RADIUS]),
@@ -300,6 +356,25 @@ class RerunLog:
         """Finish the file (what :meth:`finish_paths` has not sent is lost)."""
         self._rec.flush(timeout_sec=timeout_s)
         self._rec.disconnect()
+
+
+def _lighter(color: tuple[int, int, int]) -> tuple[int, int, int]:
+    r, g, b = color
+    return (r + (255 - r) // 2, g + (255 - g) // 2, b + (255 - b) // 2)
+
+
+def _legend_name(stream: str) -> str:
+    """``replay/<label>/estimated`` → ``<label> (replayed)``; other streams as they are."""
+    if stream.startswith("replay/"):
+        _, label, what = stream.split("/", 2)
+        return f"{label} (replayed)" if what == "estimated" else f"{label} predicted"
+    return stream
+
+
+def _on_camera(stream: str) -> bool:
+    """Streams drawn over the camera image too: actual, predicted, measured, replayed."""
+    replayed = stream.startswith("replay/") and stream.endswith("/estimated")
+    return stream in CAMERA_STREAMS or replayed
 
 
 def view_metadata(setup: RecordingSetup) -> dict[str, str]:
@@ -375,8 +450,14 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
             recording_id=view.get("recording_id") or f"{mcap.stem}@{mcap.parent.name}",
             name=view.get("name") or recording_name(trial),
         )
-        log = RerunLog(rrd, setup)
-        topics = [f"/robot/pose/{s}" for s in POSE_STREAMS]
+        summary = reader.get_summary()
+        replay_topics = sorted(
+            c.topic for c in (summary.channels.values() if summary else ())
+            if c.topic.startswith("/replay/") and c.topic.count("/") == 5
+        )  # fmt: skip
+        labels = tuple(dict.fromkeys(topic.split("/")[2] for topic in replay_topics))
+        log = RerunLog(rrd, setup, replays=labels)
+        topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + replay_topics
         topics += ["/coils/currents", "/controller/status", "/camera/image"]
         ticks = 0
         current: dict[str, Any] = {}
@@ -395,6 +476,9 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
             topic = channel.topic
             if topic.startswith("/robot/pose/"):
                 current[topic.rsplit("/", 1)[1]] = _pose(msg)
+            elif topic.startswith("/replay/"):  # /replay/<label>/robot/pose/<stream>
+                parts = topic.split("/")
+                current[f"replay/{parts[2]}/{parts[-1]}"] = _pose(msg)
             elif topic == "/coils/currents":
                 current["currents"] = np.asarray(msg.currents, dtype=np.float64)
             elif topic == "/controller/status":

@@ -259,6 +259,37 @@ class TrialParts:
         )  # fmt: skip
 
 
+@dataclass
+class ControllerParts:
+    """A trial's controller and what it is built from (:func:`build_controller`)."""
+
+    scene: Scene
+    robot: RobotParams
+    config: ControlConfig
+    free_space: FreeSpace
+    controller: Controller
+    build_s: float  # wall time of the controller's build (solvers, models)
+
+
+def build_controller(
+    trial: Trial,
+    coils: CoilSystem | None = None,
+    tune: Callable[[ControlConfig], ControlConfig] | None = None,
+) -> ControllerParts:
+    """``trial``'s scene, robot, tuning, free space and controller: the part of
+    :func:`assemble` that needs no rig (the replay builds only this)."""
+    protocol = trial.protocol
+    scene = build_scene(protocol, coils or CoilSystem.load())
+    robot = load_robot(protocol.robot)
+    config = control_config(protocol.controller, robot, trial.condition)
+    if tune is not None:
+        config = tune(config)
+    free_space = free_space_of(scene, robot)
+    t0 = time.perf_counter()
+    controller = make_controller(trial.method, robot, config, free_space=free_space)
+    return ControllerParts(scene, robot, config, free_space, controller, time.perf_counter() - t0)
+
+
 def assemble(
     trial: Trial,
     rig: RigSpec = "sim",
@@ -271,15 +302,8 @@ def assemble(
 
     protocol = trial.protocol
     coils = CoilSystem.load()  # the simulated rig's and the scene's; the models carry their own
-    scene = build_scene(protocol, coils)
-    robot = load_robot(protocol.robot)
-    config = control_config(protocol.controller, robot, trial.condition)
-    if tune is not None:
-        config = tune(config)
-    free_space = free_space_of(scene, robot)
-    t0 = time.perf_counter()
-    controller = make_controller(trial.method, robot, config, free_space=free_space)
-    build_s = time.perf_counter() - t0
+    parts = build_controller(trial, coils, tune)
+    scene, robot, controller = parts.scene, parts.robot, parts.controller
     simulated = rig == "sim"
     the_rig = make_rig(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
@@ -316,8 +340,8 @@ def assemble(
             the_rig.disconnect()
         raise
     return TrialParts(
-        trial, robot, scene, free_space, config, controller, the_rig, tracker, feedback, safety,
-        simulated, build_s,
+        trial, robot, scene, parts.free_space, parts.config, controller, the_rig, tracker,
+        feedback, safety, simulated, parts.build_s,
     )  # fmt: skip
 
 

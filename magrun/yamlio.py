@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import difflib
 import typing
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -98,13 +99,100 @@ def _message(model: type[BaseModel], err: Any) -> str:
     return msg
 
 
+def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
+    """``KEY=VALUE`` with a dotted ``KEY`` (``controller.kalman.measurement_sigma_mm=0.5``):
+    the key's parts and the value read as YAML (``0.5``, ``true``, ``null``, ``[3, 5]``,
+    ``text``). Raises ``ValueError`` naming what is wrong."""
+    key, sep, value = text.partition("=")
+    parts = tuple(key.strip().split("."))
+    if not sep or not all(parts):
+        raise ValueError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. a.b=1")
+    try:
+        return parts, yaml.safe_load(value) if value.strip() else ""
+    except yaml.YAMLError as exc:
+        raise ValueError(f"--set {text!r}: the value is not valid YAML") from exc
+
+
+def _apply_overrides(data: Any, overrides: list[tuple[str, tuple[str, ...], Any]]) -> Any:
+    """``data`` with each override set at its dotted path (mappings made where missing)."""
+    for text, parts, value in overrides:
+        if not isinstance(data, dict):
+            raise YamlModelError([f"--set {text}: the document is not a mapping"])
+        node = data
+        for i, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                where = ".".join(parts[: i + 1])
+                raise YamlModelError([f"--set {text}: {where} is a value, not a section"])
+            node = child
+        node[parts[-1]] = value
+    return data
+
+
+def _override_of(
+    loc: tuple[int | str, ...], overrides: list[tuple[str, tuple[str, ...], Any]]
+) -> tuple[str, str] | None:
+    """The ``--set`` text an error at ``loc`` comes from, if one set that part, and the
+    field to name (the key as given: pydantic's union tags beyond it dropped)."""
+    shown = tuple(str(p) for p in loc)
+    for text, parts, _ in overrides:
+        n = min(len(parts), len(shown))
+        if shown[:n] == parts[:n]:
+            return text, _field_name(loc if len(loc) <= len(parts) else parts)
+    return None
+
+
+def validate_data(
+    data: Any,
+    model: type[M],
+    source: str,
+    context: dict[str, Any] | None = None,
+    overrides: Sequence[str] = (),
+    root: yaml.Node | None = None,
+) -> M:
+    """Validate ``data`` (a YAML or JSON document, as Python objects) with ``overrides``
+    (``KEY=VALUE``, :func:`parse_override`) applied. Errors name ``source`` (and the line,
+    given the document's YAML node tree ``root``), or the ``--set`` they come from."""
+    parsed = []
+    for text in overrides:
+        try:
+            parts, value = parse_override(text)
+        except ValueError as exc:
+            raise YamlModelError([str(exc)]) from exc
+        parsed.append((text, parts, value))
+    data = _apply_overrides(data if data is not None else {}, parsed)
+    try:
+        return model.model_validate(data, context=context)
+    except RecursionError as exc:
+        raise YamlModelError([f"{source}: nested too deeply to validate"]) from exc
+    except ValidationError as exc:
+        problems = []
+        for err in exc.errors():
+            loc = tuple(err["loc"])
+            by = _override_of(loc, parsed)
+            if by is not None:
+                problems.append(f"--set {by[0]}: {by[1]}: {_message(model, err)}")
+                continue
+            line, shown = _locate(root, loc)
+            where = f"{source}:{line}" if root is not None else source
+            problems.append(f"{where}: {_field_name(shown)}: {_message(model, err)}")
+        raise YamlModelError(problems) from exc
+
+
 def parse_yaml_model(
-    text: str, model: type[M], source: str, context: dict[str, Any] | None = None
+    text: str,
+    model: type[M],
+    source: str,
+    context: dict[str, Any] | None = None,
+    overrides: Sequence[str] = (),
 ) -> M:
     """Validate YAML ``text`` against ``model``; ``source`` names it in error messages.
 
     ``context`` reaches the model's validators (``ValidationInfo.context``), e.g. the folder
-    that relative paths in the document are relative to.
+    that relative paths in the document are relative to. ``overrides`` (``KEY=VALUE``, a
+    dotted key) replace values of the document before it is validated.
     """
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
@@ -116,22 +204,20 @@ def parse_yaml_model(
         raise YamlModelError([f"{where}: not valid YAML: {problem}"]) from exc
     except RecursionError as exc:  # PyYAML's parser recurses once per nesting level
         raise YamlModelError([f"{source}: not valid YAML: nested too deeply"]) from exc
-    try:
-        return model.model_validate(data if data is not None else {}, context=context)
-    except RecursionError as exc:
-        raise YamlModelError([f"{source}: nested too deeply to validate"]) from exc
-    except ValidationError as exc:
-        problems = []
-        for err in exc.errors():
-            line, loc = _locate(root, tuple(err["loc"]))
-            problems.append(f"{source}:{line}: {_field_name(loc)}: {_message(model, err)}")
-        raise YamlModelError(problems) from exc
+    if root is None:
+        root = yaml.compose("{}", Loader=yaml.SafeLoader)
+    return validate_data(data, model, source, context, overrides, root)
 
 
-def load_yaml_model(path: str | Path, model: type[M], context: dict[str, Any] | None = None) -> M:
+def load_yaml_model(
+    path: str | Path,
+    model: type[M],
+    context: dict[str, Any] | None = None,
+    overrides: Sequence[str] = (),
+) -> M:
     """Read and validate a YAML file; every problem raises :class:`YamlModelError`."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise YamlModelError([f"{path}: cannot read: {exc}"]) from exc
-    return parse_yaml_model(text, model, str(path), context)
+    return parse_yaml_model(text, model, str(path), context, overrides)

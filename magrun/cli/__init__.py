@@ -14,6 +14,7 @@ library (the work lives in :mod:`magrun` and :mod:`analysis`).
     magrun run protocols/rate.yaml --jobs 2        # run, record MCAP + Rerun, manifest
     magrun view recordings/rate/proposed_rate-3hz/trial-0.rrd      # open in the Rerun viewer
     magrun figures recordings --out figures        # paper figures, results.csv, report.md
+    magrun replay REC.mcap --set controller.kalman.measurement_sigma_mm=0.5   # other filter
 
 =====================  ==================================================================
 :mod:`.field`          ``field reference | fit | import-comsol``
@@ -21,6 +22,7 @@ library (the work lives in :mod:`magrun` and :mod:`analysis`).
 :mod:`.tracker`        ``tracker train | run | eval``
 :mod:`.protocols`      ``validate``, ``protocol schema``, ``run``
 :mod:`.recordings`     ``view``, ``recover``, ``figures``
+:mod:`.replay`         ``replay``
 :mod:`.bench`          ``bench nmpc | tick | recorder | sigkill | campaign | rig``
 :mod:`.rig`            ``rig-emulator``
 :mod:`.common`         the input-error exit, progress output, loading users' files
@@ -42,6 +44,7 @@ from magrun.cli.common import INPUT_ERROR, InputError
 from magrun.cli.field import field
 from magrun.cli.protocols import protocol_group, run, validate
 from magrun.cli.recordings import figures, recover_cmd, view
+from magrun.cli.replay import replay
 from magrun.cli.rig import rig_emulator
 from magrun.cli.track import track
 from magrun.cli.tracker import tracker
@@ -56,8 +59,8 @@ def cli() -> None:
 
 
 for command in (
-    field, track, tracker, validate, protocol_group, run, view, recover_cmd, figures, bench,
-    rig_emulator,
+    field, track, tracker, validate, protocol_group, run, view, recover_cmd, figures, replay,
+    bench, rig_emulator,
 ):  # fmt: skip
     cli.add_command(command)
 

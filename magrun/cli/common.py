@@ -27,20 +27,28 @@ def load_coils(path: Path | None) -> Any:
         raise InputError(str(exc)) from exc
 
 
-def load_protocols(paths: tuple[Path, ...]) -> list[Any]:
-    """Every protocol, or one InputError listing every problem in every file."""
+def load_protocols(paths: tuple[Path, ...], overrides: tuple[str, ...] = ()) -> list[Any]:
+    """Every protocol (``overrides``: ``--set KEY=VALUE`` applied to each), or one
+    InputError listing every problem in every file."""
     from magrun.protocol import load_protocol
     from magrun.yamlio import YamlModelError
 
     protocols, problems = [], []
     for path in paths:
         try:
-            protocols.append(load_protocol(path))
+            protocols.append(load_protocol(path, overrides))
         except YamlModelError as exc:
             problems.extend(exc.problems)
     if problems:
         raise InputError("\n".join(problems))
     return protocols
+
+
+#: ``--set KEY=VALUE``, shared by the verbs that take a protocol
+SET_HELP = (
+    "Override a protocol value: a dotted key and a YAML value, e.g. "
+    "--set controller.kalman.measurement_sigma_mm=0.5 (repeatable; checked like the file)."
+)
 
 
 def default_tracker(camera: Any, robot: Any, weights: Path | None = None) -> Any:

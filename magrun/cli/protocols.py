@@ -11,7 +11,7 @@ from typing import Any
 import click
 import numpy as np
 
-from magrun.cli.common import InputError, load_protocols
+from magrun.cli.common import SET_HELP, InputError, load_protocols
 
 
 @click.command("validate")
@@ -148,6 +148,7 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
 )  # fmt: skip
 @click.option("--quick", is_flag=True, help="One trial of a reduced set, shorter (the demo).")
 @click.option("--seed", type=click.IntRange(min=0), help="Override the protocol's seed.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 @click.option("--jobs", type=click.IntRange(min=1), default=1, show_default=True,
               help="Trials run in parallel, one process each.")  # fmt: skip
 @click.option(
@@ -179,6 +180,7 @@ def run(
     out: Path,
     quick: bool,
     seed: int | None,
+    overrides: tuple[str, ...],
     jobs: int,
     rig: str,
     driver: str | None,
@@ -211,7 +213,7 @@ def run(
         raise InputError("--resume and --overwrite exclude each other")
     if driver is not None and rig != "hardware":
         raise InputError("--driver is for --rig hardware")
-    (protocol,) = load_protocols((protocol_file,))
+    (protocol,) = load_protocols((protocol_file,), overrides)
     the_rig: RigSpec = HardwareSpec(driver, camera_source) if driver is not None else rig
     n = len(protocol.expand(quick=quick, seed=seed))
     try:

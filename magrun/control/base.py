@@ -191,8 +191,8 @@ class Controller:
             self.estimator.constrain(inside)
         return inside
 
-    def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
-        """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
+    def _estimate(self, measurement: ArrayLike | None) -> FloatArray:
+        """The estimation half of a tick: the state ``[x, y, θ, vx, vy, ω]`` the planner sees."""
         z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
         estimate = self.estimator.update(z, self._prediction)
         if self.free_space is not None:
@@ -203,7 +203,33 @@ class Controller:
             delta = estimate - self._previous_estimate
             delta[2] = wrap_angle(delta[2])
             velocity = delta / self.dt
-        state = np.concatenate([estimate, velocity])
+        return np.concatenate([estimate, velocity])
+
+    def _advance(self, estimate: FloatArray, predicted: FloatArray, currents: FloatArray) -> None:
+        self._previous_estimate = estimate
+        self._prediction = predicted[:3].copy()
+        self._predicted_velocity = predicted[3:6].copy() if predicted.size >= 6 else None
+        self.currents = currents
+
+    def replay_step(
+        self, measurement: ArrayLike | None, currents: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """One tick of estimation with the planner replaced by given ``currents`` (those a
+        recording says were applied): the estimate, and the planner's model's prediction of
+        the next tick's pose from it under those currents, which the next tick's estimator
+        update uses as its prior. The estimator sees the consequences of its own estimates,
+        not of the recorded ones."""
+        state = self._estimate(measurement)
+        applied = np.asarray(currents, dtype=np.float64)
+        predicted = self.planner.predict(state, applied)
+        estimate = state[:3].copy()
+        self._advance(estimate, predicted, applied)
+        return estimate, predicted[:3].copy()
+
+    def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
+        """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
+        state = self._estimate(measurement)
+        estimate = state[:3].copy()
         self.planner.observe_uncertainty(self.estimator.covariance)
         plan = self.planner.plan(state, reference, self.currents)
         fault = ""
@@ -215,8 +241,5 @@ class Controller:
             np.isfinite(predicted)
         ):
             predicted = self.planner.predict(state, currents)
-        self._previous_estimate = estimate
-        self._prediction = predicted[:3].copy()
-        self._predicted_velocity = predicted[3:6].copy() if predicted.size >= 6 else None
-        self.currents = currents
+        self._advance(estimate, predicted, currents)
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)

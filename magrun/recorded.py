@@ -1,0 +1,127 @@
+"""A magrun MCAP recording read back for replay: its metadata and its ticks as arrays.
+
+:func:`read_ticks` decodes what :class:`~magrun.recording.TrialRecorder` wrote: every pose
+stream, the applied currents and the controller's status, one row per control tick (a tick
+is its ``/coils/currents`` message; streams absent at a tick are NaN). Images are left out.
+``analysis.load`` reads the same files into pandas for statistics; this reader serves the
+replay, which needs the protocol and the streams tick by tick, and keeps ``magrun`` free of
+``analysis``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magrun.records import POSE_STREAMS, yaw_of
+
+FloatArray = NDArray[np.float64]
+
+
+RECOVER = "magrun recover rebuilds it"
+
+
+class RecordingReadError(ValueError):
+    """A file that is not a readable, indexed magrun recording."""
+
+
+@dataclass
+class RecordedTrial:
+    """One trial's recording: ``poses[stream]`` (n, 3) with NaN rows where the stream had
+    no message at that tick; ``currents`` (n, channels), A; ``t`` (n,), s."""
+
+    path: Path
+    metadata: dict[str, dict[str, str]]
+    t: FloatArray
+    t_ns: NDArray[np.int64]
+    poses: dict[str, FloatArray]
+    currents: FloatArray
+    channel_names: tuple[str, ...]
+    compute_time: FloatArray
+    extra_topics: list[str] = field(default_factory=list)
+
+    @property
+    def trial(self) -> dict[str, Any]:
+        return {k: _json_or_text(v) for k, v in self.metadata.get("trial", {}).items()}
+
+    @property
+    def protocol_json(self) -> str:
+        return self.metadata.get("protocol", {}).get("json", "")
+
+    def measured(self, k: int) -> FloatArray | None:
+        z = self.poses["measured"][k]
+        return None if np.isnan(z[0]) else z
+
+
+def read_ticks(path: str | Path) -> RecordedTrial:
+    """Read ``path`` tick by tick (see the module doc).
+
+    Raises
+    ------
+    RecordingReadError
+        Not an MCAP file, no index (``magrun recover`` rebuilds it), or no ``trial`` record.
+    """
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    path = Path(path)
+    topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
+    rows: dict[int, dict[str, Any]] = {}
+    names: tuple[str, ...] = ()
+    try:
+        with path.open("rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            if reader.get_summary() is None:
+                raise RecordingReadError(
+                    f"{path}: no summary or index (magrun recover rebuilds it)"
+                )
+            meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+            for _s, channel, message, msg in reader.iter_decoded_messages(
+                topics=topics, log_time_order=True
+            ):
+                row = rows.setdefault(message.log_time, {})
+                topic = channel.topic
+                if topic.startswith("/robot/pose/"):
+                    p, q = msg.pose.position, msg.pose.orientation
+                    row[topic.rsplit("/", 1)[1]] = (p.x, p.y, yaw_of(q.z, q.w))
+                elif topic == "/coils/currents":
+                    names = tuple(msg.names)
+                    row["currents"] = tuple(msg.currents)
+                else:
+                    row["compute_time"] = msg.compute_time
+    except RecordingReadError:
+        raise
+    except Exception as exc:  # mcap raises several types for damaged files
+        raise RecordingReadError(f"{path}: cannot be read ({type(exc).__name__}: {exc})") from exc
+    if "trial" not in meta:
+        raise RecordingReadError(f"{path}: no `trial` metadata record: not a magrun recording")
+    ticks = sorted(t for t, row in rows.items() if "currents" in row)
+    if not ticks:
+        raise RecordingReadError(f"{path}: no /coils/currents messages: no control ticks")
+    nan3 = (math.nan,) * 3
+    poses = {
+        s: np.array([rows[t].get(s, nan3) for t in ticks], dtype=np.float64) for s in POSE_STREAMS
+    }
+    return RecordedTrial(
+        path=path,
+        metadata=meta,
+        t=np.array(ticks, dtype=np.float64) / 1e9,
+        t_ns=np.array(ticks, dtype=np.int64),
+        poses=poses,
+        currents=np.array([rows[t]["currents"] for t in ticks], dtype=np.float64),
+        channel_names=names,
+        compute_time=np.array([rows[t].get("compute_time", math.nan) for t in ticks]),
+    )
+
+
+def _json_or_text(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
