@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +44,6 @@ class RecordedTrial:
     currents: FloatArray
     channel_names: tuple[str, ...]
     compute_time: FloatArray
-    extra_topics: list[str] = field(default_factory=list)
 
     @property
     def trial(self) -> dict[str, Any]:

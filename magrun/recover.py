@@ -86,6 +86,29 @@ class RecoveryReport:
         )
 
 
+def copy_channel(
+    writer: Writer,
+    channel: Channel,
+    schema: Schema | None,
+    channel_ids: dict[int, int],
+    schema_ids: dict[int, int],
+) -> int:
+    """The id in ``writer`` of an input file's ``channel`` (and its ``schema``), registered
+    on first use; ``channel_ids`` and ``schema_ids`` map input ids to output ids."""
+    if channel.id not in channel_ids:
+        sid = 0
+        if schema is not None:
+            if schema.id not in schema_ids:
+                schema_ids[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            sid = schema_ids[schema.id]
+        channel_ids[channel.id] = writer.register_channel(
+            channel.topic, channel.message_encoding, sid, dict(channel.metadata)
+        )
+    return channel_ids[channel.id]
+
+
 def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
     """Copy every intact record of ``src`` into a new, indexed MCAP file ``dst``.
 
@@ -125,20 +148,10 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
                         ch = channels.get(record.channel_id)
                         if ch is None:
                             continue  # a message whose channel record was lost
-                        if ch.id not in ids:
-                            sid = 0
-                            if ch.schema_id:
-                                s = schemas[ch.schema_id]
-                                if s.id not in schema_ids:
-                                    schema_ids[s.id] = writer.register_schema(
-                                        s.name, s.encoding, s.data
-                                    )
-                                sid = schema_ids[s.id]
-                            ids[ch.id] = writer.register_channel(
-                                ch.topic, ch.message_encoding, sid, dict(ch.metadata)
-                            )
+                        schema = schemas[ch.schema_id] if ch.schema_id else None
+                        out_id = copy_channel(writer, ch, schema, ids, schema_ids)
                         writer.add_message(
-                            ids[ch.id], record.log_time, record.data, record.publish_time,
+                            out_id, record.log_time, record.data, record.publish_time,
                             record.sequence,
                         )  # fmt: skip
                         report.messages += 1

@@ -201,6 +201,7 @@ def write_replay(rec: RecordedTrial, result: EstimatorReplay, out: str | Path) -
     from mcap_protobuf.schema import register_schema
 
     from magrun.recording import pose_message
+    from magrun.recover import copy_channel
     from magrun.rerun_log import rrd_from_mcap
 
     out = Path(out)
@@ -236,20 +237,9 @@ def write_replay(rec: RecordedTrial, result: EstimatorReplay, out: str | Path) -
             while i < len(extra) and extra[i][0] < message.log_time:
                 add_extra(*extra[i])
                 i += 1
-            if channel.id not in channel_ids:
-                sid = 0
-                if schema is not None:
-                    if schema.id not in schema_ids:
-                        schema_ids[schema.id] = writer.register_schema(
-                            schema.name, schema.encoding, schema.data
-                        )
-                    sid = schema_ids[schema.id]
-                channel_ids[channel.id] = writer.register_channel(
-                    channel.topic, channel.message_encoding, sid, dict(channel.metadata)
-                )
             writer.add_message(
-                channel_ids[channel.id], message.log_time, message.data, message.publish_time,
-                message.sequence,
+                copy_channel(writer, channel, schema, channel_ids, schema_ids),
+                message.log_time, message.data, message.publish_time, message.sequence,
             )  # fmt: skip
         for item in extra[i:]:
             add_extra(*item)
