@@ -596,7 +596,7 @@ def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jo
 @pytest.mark.parametrize("kind", ["rrd", "mcap"])
 def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any, kind: str) -> None:
     """`magrun view FILE --web --port N` answers HTTP on 127.0.0.1:N and prints the URL, for
-    an .rrd and for an .mcap (converted first); Ctrl-C (SIGINT) stops it."""
+    an .rrd and for an .mcap (converted first); SIGTERM stops it as Ctrl-C does."""
     import os
     import signal
     import socket
@@ -622,9 +622,15 @@ def test_view_web_serves_the_viewer_on_localhost(tiny_run: Any, kind: str) -> No
             except OSError:
                 time.sleep(0.5)
     finally:
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: magrun and the viewer it started
-        _, err = proc.communicate(timeout=60)
+        os.killpg(proc.pid, signal.SIGTERM)  # magrun and the viewer it started
+        try:
+            _, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:  # reported below, never left running
+            os.killpg(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate()
+            err = f"still running 60 s after SIGTERM\n{err}"
     assert status == 200, err
+    assert proc.returncode == 130, err  # stopped as by Ctrl-C, temporary files removed
     assert f"http://127.0.0.1:{port}/?url=rerun" in err
 
 

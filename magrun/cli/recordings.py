@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 import numpy as np
@@ -81,10 +83,24 @@ def _open(rrd: Path, rerun: str, web: bool, port: int, shown: Path) -> None:
         env["BROWSER"] = "true"  # print the address; open no browser
     else:
         args = [rerun, str(rrd), "--bind", "127.0.0.1"]
+
+    def stop(signum: int, frame: Any) -> None:
+        raise KeyboardInterrupt  # SIGTERM as Ctrl-C: stop the viewer, clean up, exit
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    viewer = subprocess.Popen(args, env=env)
     try:
-        code = subprocess.call(args, env=env)
+        code = viewer.wait()
     except KeyboardInterrupt:
+        viewer.terminate()  # the viewer may have had the Ctrl-C too, or not (SIGTERM, kill)
+        try:
+            viewer.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            viewer.kill()
+            viewer.wait()
         code = 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     if code:
         sys.exit(code)
 
