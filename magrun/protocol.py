@@ -337,6 +337,21 @@ class SafetySettings(_Strict):
     )
 
 
+class SimulationSettings(_Strict):
+    """The simulated rig's plant: how far each trial's robot and coils are from the models'
+    nominal ones. Each factor is log-normal, exp(N(0, σ²)), drawn per trial from its seed;
+    the draw is recorded (MCAP metadata record ``plant``)."""
+
+    mass_sigma: NonNegativeFloat = Field(0.1, description="σ of the mass (and inertia) factor.")
+    drag_sigma: NonNegativeFloat = Field(0.1, description="σ of the drag coefficients' factor.")
+    moment_sigma: NonNegativeFloat = Field(
+        0.05, description="σ of the magnetic moment's factor."
+    )
+    coil_gain_sigma: NonNegativeFloat = Field(
+        0.02, description="σ of each coil's gain (field per ampere), one draw per coil."
+    )
+
+
 class QuickSettings(_Strict):
     """What ``--quick`` runs: one trial of fewer conditions over a shorter time."""
 
@@ -373,6 +388,7 @@ class Protocol(_Strict):
     feedback: FeedbackSettings = FeedbackSettings()
     recording: RecordingSettings = RecordingSettings()
     safety: SafetySettings = SafetySettings()
+    simulation: SimulationSettings = SimulationSettings()
     duration_s: PositiveFloat | None = Field(
         None, description="Trial length, s; default: the trajectory plus 1 s of hold."
     )

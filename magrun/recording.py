@@ -299,6 +299,8 @@ class TrialRecorder(Recorder):
             },
         )
         self._mcap.add_metadata("view", view_metadata(self.setup))
+        for name, record in self.setup.extra_metadata.items():
+            self._mcap.add_metadata(name, record)
         before = pin_thread(self.writer_cpus)  # Rerun's threads, started here, inherit it
         try:
             self._rerun = RerunLog(self.rrd_path, self.setup)

@@ -89,3 +89,4 @@ class RecordingSetup:
     image_format: str = "jpeg"  # or "raw": foxglove.RawImage, every pixel
     rerun_image_every: int = 1  # of the recorded frames, every n-th also into the .rrd
     compression: str = "zstd"  # MCAP chunk compression: zstd, lz4 or none
+    extra_metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # more records

@@ -68,6 +68,25 @@ def _torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+#: the simulated plant's parameters recorded per trial (RobotParams fields, SI)
+PLANT_FIELDS = (
+    "mass", "inertia", "drag_parallel", "drag_perpendicular", "drag_rotation", "moment",
+)  # fmt: skip
+
+
+def plant_record(rig: Any) -> dict[str, str]:
+    """The MCAP ``plant`` record of a simulated rig: the trial's drawn robot parameters (SI),
+    the nominal ones, and each channel's coil gain; values JSON."""
+    true, nominal = rig.robot, rig.nominal_robot
+    return {
+        "robot": json.dumps({f: getattr(true, f) for f in PLANT_FIELDS}),
+        "nominal_robot": json.dumps({f: getattr(nominal, f) for f in PLANT_FIELDS}),
+        "coil_gains": json.dumps(
+            dict(zip(rig.channel_names, np.asarray(rig.coil_gains).tolist(), strict=True))
+        ),
+    }
+
+
 def execute_trial(
     trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
 ) -> dict[str, Any]:
@@ -118,6 +137,7 @@ def execute_trial(
             compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
             name=f"{trial.relpath} (seed {trial.seed})",
+            extra_metadata={"plant": plant_record(the_rig)} if sim else {},
         )
         writer = protocol.recording.writer
         cam = the_rig.camera

@@ -41,7 +41,14 @@ from magrun.control.two_layer import LinearMPCConfig
 from magrun.field.coils import CoilSystem
 from magrun.freespace import FreeSpace
 from magrun.loop import PoseTracker, TrialLog, run_trial
-from magrun.protocol import Conditions, ControllerSettings, Protocol, Trial, condition_slug
+from magrun.protocol import (
+    Conditions,
+    ControllerSettings,
+    Protocol,
+    SimulationSettings,
+    Trial,
+    condition_slug,
+)
 from magrun.records import Tick
 from magrun.robot import RobotParams, load_robot
 from magrun.safety import SafetyConfig, SafetyLayer
@@ -140,9 +147,12 @@ def make_rig(
     camera: bool,
     watchdog_s: float = 0.1,
     coils: CoilSystem | None = None,
+    simulation: SimulationSettings | None = None,
 ) -> Any:
     """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``coils``: default
-    the paper's) or the hardware rig a :class:`HardwareSpec` names (not yet connected)."""
+    the paper's; its plant drawn around ``robot`` as ``simulation`` says, default the
+    protocol's defaults) or the hardware rig a :class:`HardwareSpec` names (not yet
+    connected)."""
     if isinstance(kind, HardwareSpec):
         from magrun.rigs.cameras import camera_source
         from magrun.rigs.drivers import load_driver
@@ -154,12 +164,17 @@ def make_rig(
         return HardwareRig(driver, source, Camera(), robot, watchdog_s)
     if kind == "hardware":
         raise RunError(NO_DRIVER)
-    from magrun.rigs.sim import SimRig
+    from magrun.rigs.sim import Perturbation, SimRig
     from magrun.tracking.camera import CameraConfig
 
+    sim = simulation or SimulationSettings()
+    perturbation = Perturbation(
+        mass=sim.mass_sigma, drag=sim.drag_sigma, moment=sim.moment_sigma,
+        coil_gain=sim.coil_gain_sigma,
+    )  # fmt: skip
     return SimRig.default(
-        robot=robot, walls=walls, seed=seed, camera=CameraConfig() if camera else None,
-        coils=coils,
+        robot=robot, walls=walls, perturbation=perturbation, seed=seed,
+        camera=CameraConfig() if camera else None, coils=coils,
     )  # fmt: skip
 
 
@@ -307,7 +322,7 @@ def assemble(
     simulated = rig == "sim"
     the_rig = make_rig(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
-        protocol.safety.stall_timeout_ms * 1e-3, coils,
+        protocol.safety.stall_timeout_ms * 1e-3, coils, protocol.simulation,
     )  # fmt: skip
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver

@@ -203,3 +203,90 @@ def test_set_overrides_a_protocol_and_names_itself_in_errors() -> None:
     result = CliRunner().invoke(cli, ["run", str(TINY), "--set", "controller.rate_hz=abc"])
     assert result.exit_code == 2
     assert "--set controller.rate_hz=abc: controller.rate_hz:" in result.output
+
+
+#: the tiny protocol at 25.5 Hz on an exact plant: the models' nominal robot and coils
+EXACT_PLANT = (
+    "methods=[proposed]",
+    "sweep.tracking_rate_hz=[25.5]",
+    "conditions.noise_sigma_mm=0",
+    "duration_s=6",
+    "simulation.mass_sigma=0",
+    "simulation.drag_sigma=0",
+    "simulation.moment_sigma=0",
+    "simulation.coil_gain_sigma=0",
+)
+
+
+@pytest.fixture(scope="module")
+def exact_plant(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("exact")
+    manifest = run_protocol(load_protocol(TINY, EXACT_PLANT), out, jobs=1)
+    (entry,) = manifest["trials"]
+    assert entry["status"] == "ok"
+    return out / "tiny" / entry["mcap"]
+
+
+def test_the_plants_own_field_predicts_an_exact_plant(exact_plant: Path) -> None:
+    """On a plant with the nominal robot and coil gains, the reference maps (the plant's own
+    field) predict one tick ahead to within 10 µm (what remains: the velocity from two
+    recorded poses, the amplifiers' ramp), several times better than the Zernike fit of
+    the same maps; the lookup table, bilinear on the plant's grid, is the plant's field."""
+    from magrun.prediction import prediction_errors
+
+    ref = prediction_errors(exact_plant, "reference", horizon=5)
+    lut = prediction_errors(exact_plant, "lut", horizon=5)
+    zernike = prediction_errors(exact_plant, "zernike", horizon=5)
+    assert ref.starts > 100
+    assert ref.position_mm[0] < 0.01
+    assert zernike.position_mm[0] > 3 * ref.position_mm[0]
+    assert np.all(np.diff(zernike.position_mm) > 0)  # open loop: the error grows with K
+    np.testing.assert_allclose(lut.position_mm, ref.position_mm, rtol=1e-6)
+
+
+def test_a_perturbed_plant_predicts_worse_and_its_draw_is_recorded(
+    recorded: dict[str, Path], exact_plant: Path
+) -> None:
+    """The default plant draw (robot parameters and coil gains off the nominal) is in the
+    recording's ``plant`` record, equal to the simulated rig's own draw for the trial's
+    seed, and it costs the reference model accuracy."""
+    from magrun.prediction import prediction_errors
+    from magrun.rigs.sim import DEFAULT_PERTURBATION, SimRig
+
+    path = recorded["proposed"]
+    with path.open("rb") as fh:
+        meta = {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+    plant = {k: json.loads(v) for k, v in meta["plant"].items()}
+    seed = int(json.loads(meta["trial"]["seed"]))
+    rig = SimRig.default("magnet", perturbation=DEFAULT_PERTURBATION, seed=seed)
+    assert plant["robot"]["drag_parallel"] == pytest.approx(rig.robot.drag_parallel, rel=1e-12)
+    assert plant["robot"]["moment"] == pytest.approx(rig.robot.moment, rel=1e-12)
+    assert list(plant["coil_gains"].values()) == pytest.approx(list(rig.coil_gains), rel=1e-12)
+    assert plant["robot"] != plant["nominal_robot"]
+    perturbed = prediction_errors(path, "reference", horizon=1)
+    exact = prediction_errors(exact_plant, "reference", horizon=1)
+    assert perturbed.position_mm[0] > exact.position_mm[0]
+
+
+def test_the_protocols_default_plant_draw_is_the_simulators() -> None:
+    from magrun.protocol import SimulationSettings
+    from magrun.rigs.sim import DEFAULT_PERTURBATION
+
+    s = SimulationSettings()
+    assert (s.mass_sigma, s.drag_sigma, s.moment_sigma, s.coil_gain_sigma) == (
+        DEFAULT_PERTURBATION.mass, DEFAULT_PERTURBATION.drag, DEFAULT_PERTURBATION.moment,
+        DEFAULT_PERTURBATION.coil_gain,
+    )  # fmt: skip
+
+
+def test_model_replay_on_the_command_line(exact_plant: Path) -> None:
+    result = CliRunner().invoke(
+        cli, ["replay", str(exact_plant), "--model", "zernike", "--horizon", "3", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert doc["horizon"] == 3
+    assert len(doc["rms_position_mm"]) == 3
+    result = CliRunner().invoke(cli, ["replay", str(exact_plant), "--model", "lut", "--out", "x"])
+    assert result.exit_code == 2
+    assert "--model writes nothing" in result.output

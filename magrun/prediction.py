@@ -1,0 +1,182 @@
+"""A field and dynamics model's open-loop prediction error on a recording (model replay).
+
+The paper's prediction-accuracy experiment (Section III-A) compares the pose the NMPC
+predicted at the previous tick with the pose reached. :func:`prediction_errors` asks the same
+of any model on any recording, further ahead: from the recorded actual pose at tick k (and
+the velocity from the poses at k − 1 and k) it drives the planar dynamics
+(:func:`magrun.robot.exponential_substep`) with the currents the recording says were applied
+at ticks k … k + K − 1, and compares the pose after j ticks with the recorded one, for
+j = 1 … K. Every tick of the recording is a start; the result is the RMS position (mm) and
+heading (°) error at each horizon.
+
+The field comes from one of the models (``--model``):
+
+- ``zernike``: the shipped Zernike model (the proposed method's);
+- ``lut``: the shipped lookup table (Baselines 2, 3 and 5);
+- ``reference``: the reference maps on the plant's grid, the simulated rig's own field.
+
+The robot is the protocol's, with its nominal parameters (a simulated rig draws each trial's
+parameters and coil gains around them: that difference is part of the error, and what
+``magrun identify`` is meant to estimate). Each tick's first ``latency`` (the protocol's
+declared latency, or the recorded compute time where it was charged as measured) runs on the
+previous tick's currents, as on the rig. The amplifiers' slew ramp and wall contacts are not
+modelled: in a phantom, ticks in contact predict worse.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from magrun.recorded import read_ticks
+from magrun.replay import ReplayError, trial_of
+
+FloatArray = NDArray[np.float64]
+#: the field models a recording can be replayed with
+MODELS = ("zernike", "lut", "reference")
+#: integration sub-step, s (the tick is split into equal sub-steps no longer than this)
+SUBSTEP = 2e-3
+
+
+@dataclass
+class PredictionErrors:
+    """RMS open-loop prediction errors at horizons 1 … K (ticks)."""
+
+    model: str
+    robot: str
+    dt: float  # s, the control period
+    starts: int  # start ticks averaged over
+    position_mm: FloatArray  # (K,) RMS position error after j ticks
+    heading_deg: FloatArray  # (K,) RMS heading error after j ticks
+    wall_s: float
+
+    def summary(self) -> dict[str, Any]:
+        """What ``magrun replay --model --json`` prints."""
+        return {
+            "model": self.model,
+            "robot": self.robot,
+            "dt_s": self.dt,
+            "starts": self.starts,
+            "horizon": len(self.position_mm),
+            "rms_position_mm": [round(float(v), 6) for v in self.position_mm],
+            "rms_heading_deg": [round(float(v), 6) for v in self.heading_deg],
+            "wall_s": self.wall_s,
+        }
+
+
+def _wrap(a: Any) -> Any:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def field_function(model: str, coils: Any) -> Any:
+    """``f(positions (n, 2), currents (n, C)) -> (B, G)``, with ``B[k]`` and ``G[k][l]``
+    arrays of n (T, T/m), for one of :data:`MODELS`."""
+    if model in ("zernike", "lut"):
+        from magrun.control.methods import shipped_models
+
+        zernike, lut = shipped_models()
+        planar = zernike if model == "zernike" else lut
+
+        def analytic(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
+            B, G = planar.field_and_gradient(positions, currents)
+            return B.T, G.transpose(1, 2, 0)
+
+        return analytic
+    if model == "reference":
+        from magrun.field.grid import ChannelGrid
+
+        grid = ChannelGrid.load(coils)
+
+        def gridded(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
+            rows = np.stack(
+                [I @ grid.unit(x, y) for (x, y), I in zip(positions, currents, strict=True)]
+            )
+            return rows[:, :2].T, rows[:, 2:].reshape(-1, 2, 2).transpose(1, 2, 0)
+
+        return gridded
+    raise ReplayError(f"unknown model {model!r}; one of {', '.join(MODELS)}")
+
+
+def prediction_errors(
+    path: str | Path, model: str = "zernike", horizon: int = 1, overrides: tuple[str, ...] = ()
+) -> PredictionErrors:
+    """The open-loop prediction error of ``model`` on the recording at ``path`` (module doc)
+    at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
+    robot). Raises :class:`~magrun.replay.ReplayError` on what it cannot use."""
+    from magrun.field.coils import CoilSystem
+    from magrun.robot import NUMPY_OPS, exponential_substep, load_robot
+
+    if horizon < 1:
+        raise ReplayError(f"--horizon must be at least 1, got {horizon}")
+    rec = read_ticks(path)
+    trial = trial_of(rec, overrides)
+    protocol = trial.protocol
+    coils = CoilSystem.load()
+    if rec.currents.shape[1] != coils.n_channels:
+        raise ReplayError(
+            f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "
+            f"has {coils.n_channels}"
+        )
+    robot = load_robot(protocol.robot)
+    field = field_function(model, coils)
+    dt = 1.0 / protocol.controller.rate_hz
+    latency = protocol.controller.latency
+    lag = rec.compute_time if latency == "measured" else np.full(len(rec.t), float(latency))
+    lag = np.clip(np.nan_to_num(lag, nan=0.0), 0.0, dt)
+    actual, currents = rec.poses["actual"], rec.currents
+    n = len(rec.t)
+    ok = np.all(np.isfinite(actual), axis=1)
+    starts = np.array(
+        [k for k in range(1, n - horizon) if ok[k - 1 : k + horizon + 1].all()], dtype=int
+    )
+    if len(starts) == 0:
+        raise ReplayError(f"{rec.path}: too few ticks with an actual pose for --horizon {horizon}")
+    t0 = time.perf_counter()
+    d = actual[starts] - actual[starts - 1]
+    d[:, 2] = _wrap(d[:, 2])
+    v = d / dt
+    state: tuple[Any, ...] = (*actual[starts].T, *v.T)
+    pos = np.empty(horizon)
+    ang = np.empty(horizon)
+    for j in range(horizon):
+        k = starts + j
+        # the tick's first lag runs on the previous currents, the rest on this tick's
+        for held, duration in ((currents[k - 1], lag[k]), (currents[k], dt - lag[k])):
+            B, G = field(np.column_stack(state[:2]), held)
+            m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
+            for _ in range(m):
+                state = _substep(state, B, G, robot, duration / m, exponential_substep, NUMPY_OPS)
+        target = actual[k + 1]
+        pos[j] = math.sqrt(np.mean((state[0] - target[:, 0]) ** 2 + (state[1] - target[:, 1]) ** 2))
+        ang[j] = math.degrees(math.sqrt(np.mean(_wrap(state[2] - target[:, 2]) ** 2)))
+    return PredictionErrors(
+        model=model, robot=protocol.robot, dt=dt, starts=len(starts), position_mm=pos * 1e3,
+        heading_deg=ang, wall_s=time.perf_counter() - t0,
+    )  # fmt: skip
+
+
+def _substep(
+    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray, step: Any, ops: Any
+) -> tuple[Any, ...]:
+    """One sub-step of length ``h`` (an array: each start's own) for every start at once."""
+    if np.all(h == h.flat[0]):
+        h0 = float(h.flat[0])
+        return state if h0 <= 0 else tuple(step(state, B, G, robot, h0, ops))
+    # different lengths (measured latency): group the starts by length
+    out = [np.array(s, dtype=np.float64, copy=True) for s in state]
+    for value in np.unique(h):
+        if value <= 0:
+            continue
+        sel = h == value
+        part = tuple(s[sel] for s in state)
+        Bs = tuple(b[sel] for b in B)
+        Gs = tuple(tuple(g[sel] for g in row) for row in G)
+        for i, s in enumerate(step(part, Bs, Gs, robot, float(value), ops)):
+            out[i][sel] = s
+    return tuple(out)
