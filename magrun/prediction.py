@@ -103,48 +103,55 @@ def field_function(model: str, coils: Any) -> Any:
     raise ReplayError(f"unknown model {model!r}; one of {', '.join(MODELS)}")
 
 
-def prediction_errors(
-    path: str | Path, model: str = "zernike", horizon: int = 1, overrides: tuple[str, ...] = ()
-) -> PredictionErrors:
-    """The open-loop prediction error of ``model`` on the recording at ``path`` (module doc)
-    at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
-    robot). Raises :class:`~magrun.replay.ReplayError` on what it cannot use."""
-    from magrun.field.coils import CoilSystem
-    from magrun.robot import NUMPY_OPS, exponential_substep, load_robot
+@dataclass
+class Segments:
+    """What open-loop rollouts need from one recording: the actual poses (n, 3), the
+    applied currents (n, C), each tick's latency (n,) s, the period, and the start ticks
+    from which ``horizon`` ticks of actual poses follow."""
 
-    if horizon < 1:
-        raise ReplayError(f"--horizon must be at least 1, got {horizon}")
-    rec = read_ticks(path)
-    trial = trial_of(rec, overrides)
-    protocol = trial.protocol
-    coils = CoilSystem.load()
-    if rec.currents.shape[1] != coils.n_channels:
-        raise ReplayError(
-            f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "
-            f"has {coils.n_channels}"
-        )
-    robot = load_robot(protocol.robot)
-    field = field_function(model, coils)
+    actual: FloatArray
+    currents: FloatArray
+    lag: FloatArray
+    dt: float
+    starts: NDArray[np.int64]
+    horizon: int
+
+
+def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
+    """The :class:`Segments` of a recording (:class:`~magrun.recorded.RecordedTrial`) made
+    under ``protocol``; raises :class:`~magrun.replay.ReplayError` if it has none."""
     dt = 1.0 / protocol.controller.rate_hz
     latency = protocol.controller.latency
     lag = rec.compute_time if latency == "measured" else np.full(len(rec.t), float(latency))
     lag = np.clip(np.nan_to_num(lag, nan=0.0), 0.0, dt)
-    actual, currents = rec.poses["actual"], rec.currents
+    actual = rec.poses["actual"]
     n = len(rec.t)
     ok = np.all(np.isfinite(actual), axis=1)
     starts = np.array(
-        [k for k in range(1, n - horizon) if ok[k - 1 : k + horizon + 1].all()], dtype=int
+        [k for k in range(1, n - horizon) if ok[k - 1 : k + horizon + 1].all()], dtype=np.int64
     )
     if len(starts) == 0:
         raise ReplayError(f"{rec.path}: too few ticks with an actual pose for --horizon {horizon}")
-    t0 = time.perf_counter()
+    return Segments(actual, rec.currents, lag, dt, starts, horizon)
+
+
+def rollout(
+    seg: Segments, robot: Any, field: Any, gains: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """Open-loop predictions from every start: positions (K, n, 2) and headings (K, n) after
+    1 … K ticks. ``gains`` scale each channel's field per ampere (default 1)."""
+    from magrun.robot import NUMPY_OPS, exponential_substep
+
+    actual, currents, lag, dt, starts = seg.actual, seg.currents, seg.lag, seg.dt, seg.starts
+    if gains is not None:
+        currents = currents * gains  # a coil's gain scales its field per ampere
     d = actual[starts] - actual[starts - 1]
     d[:, 2] = _wrap(d[:, 2])
     v = d / dt
     state: tuple[Any, ...] = (*actual[starts].T, *v.T)
-    pos = np.empty(horizon)
-    ang = np.empty(horizon)
-    for j in range(horizon):
+    positions = np.empty((seg.horizon, len(starts), 2))
+    headings = np.empty((seg.horizon, len(starts)))
+    for j in range(seg.horizon):
         k = starts + j
         # the tick's first lag runs on the previous currents, the rest on this tick's
         for held, duration in ((currents[k - 1], lag[k]), (currents[k], dt - lag[k])):
@@ -152,11 +159,44 @@ def prediction_errors(
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
             for _ in range(m):
                 state = _substep(state, B, G, robot, duration / m, exponential_substep, NUMPY_OPS)
-        target = actual[k + 1]
-        pos[j] = math.sqrt(np.mean((state[0] - target[:, 0]) ** 2 + (state[1] - target[:, 1]) ** 2))
-        ang[j] = math.degrees(math.sqrt(np.mean(_wrap(state[2] - target[:, 2]) ** 2)))
+        positions[j] = np.column_stack(state[:2])
+        headings[j] = state[2]
+    return positions, headings
+
+
+def errors_of(seg: Segments, positions: FloatArray, headings: FloatArray) -> tuple[Any, Any]:
+    """RMS position (mm) and heading (°) error at each horizon, shape (K,) each."""
+    target = np.stack([seg.actual[seg.starts + j + 1] for j in range(seg.horizon)])
+    dp = positions - target[..., :2]
+    pos = np.sqrt(np.mean(np.sum(dp**2, axis=-1), axis=1)) * 1e3
+    ang = np.degrees(np.sqrt(np.mean(_wrap(headings - target[..., 2]) ** 2, axis=1)))
+    return pos, ang
+
+
+def prediction_errors(
+    path: str | Path, model: str = "zernike", horizon: int = 1, overrides: tuple[str, ...] = ()
+) -> PredictionErrors:
+    """The open-loop prediction error of ``model`` on the recording at ``path`` (module doc)
+    at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
+    robot). Raises :class:`~magrun.replay.ReplayError` on what it cannot use."""
+    from magrun.field.coils import CoilSystem
+
+    if horizon < 1:
+        raise ReplayError(f"--horizon must be at least 1, got {horizon}")
+    rec = read_ticks(path)
+    protocol = trial_of(rec, overrides).protocol
+    coils = CoilSystem.load()
+    if rec.currents.shape[1] != coils.n_channels:
+        raise ReplayError(
+            f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "
+            f"has {coils.n_channels}"
+        )
+    seg = segments_of(rec, protocol, horizon)
+    t0 = time.perf_counter()
+    positions, headings = rollout(seg, protocol.robot_params(), field_function(model, coils))
+    pos, ang = errors_of(seg, positions, headings)
     return PredictionErrors(
-        model=model, robot=protocol.robot, dt=dt, starts=len(starts), position_mm=pos * 1e3,
+        model=model, robot=protocol.robot, dt=seg.dt, starts=len(seg.starts), position_mm=pos,
         heading_deg=ang, wall_s=time.perf_counter() - t0,
     )  # fmt: skip
 

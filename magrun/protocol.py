@@ -34,7 +34,7 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
@@ -47,6 +47,9 @@ from pydantic import (
 )
 
 from magrun.control import METHODS
+
+if TYPE_CHECKING:
+    from magrun.robot import RobotParams
 from magrun.yamlio import YamlModelError, load_yaml_model, validate_data
 
 #: most trials one protocol file may expand to: a sweep beyond it is refused before anything
@@ -344,9 +347,7 @@ class SimulationSettings(_Strict):
 
     mass_sigma: NonNegativeFloat = Field(0.1, description="σ of the mass (and inertia) factor.")
     drag_sigma: NonNegativeFloat = Field(0.1, description="σ of the drag coefficients' factor.")
-    moment_sigma: NonNegativeFloat = Field(
-        0.05, description="σ of the magnetic moment's factor."
-    )
+    moment_sigma: NonNegativeFloat = Field(0.05, description="σ of the magnetic moment's factor.")
     coil_gain_sigma: NonNegativeFloat = Field(
         0.02, description="σ of each coil's gain (field per ampere), one draw per coil."
     )
@@ -376,7 +377,14 @@ class Protocol(_Strict):
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=80)
     description: str = ""
-    robot: str = Field("magnet", description="A robot of robots.yaml.")
+    robots_file: str | None = Field(
+        None,
+        description=(
+            "A robots file (robots.yaml's format, e.g. what magrun identify writes), relative "
+            "to the protocol file's folder; default: magrun's robots.yaml."
+        ),
+    )
+    robot: str = Field("magnet", description="A robot of the robots file.")
     workspace: Workspace = Field(default_factory=lambda: OpenWorkspace(kind="open"))
     trajectory: TrajectorySpec
     methods: Annotated[list[str], Field(min_length=1)]
@@ -399,14 +407,27 @@ class Protocol(_Strict):
     def _known_methods(cls, methods: list[str]) -> list[str]:
         return _check_methods(methods)
 
-    @field_validator("robot")
+    @field_validator("robots_file")
     @classmethod
-    def _known_robot(cls, robot: str) -> str:
+    def _robots_file(cls, value: str | None, info: ValidationInfo) -> str | None:
+        if value is None:
+            return None
         from magrun.robot import load_robots
 
-        names = sorted(load_robots())
+        path = _resolve(value, info)
+        load_robots(path)  # its own errors name the robots file and line
+        return str(path)
+
+    @field_validator("robot")
+    @classmethod
+    def _known_robot(cls, robot: str, info: ValidationInfo) -> str:
+        from magrun.robot import load_robots
+
+        robots_file = info.data.get("robots_file")
+        names = sorted(load_robots(robots_file))
         if robot not in names:
-            raise ValueError(f"unknown robot {robot!r}; robots.yaml has {', '.join(names)}")
+            where = robots_file or "robots.yaml"
+            raise ValueError(f"unknown robot {robot!r}; {where} has {', '.join(names)}")
         return robot
 
     # fields are validated in order; these checks see the fields declared above them
@@ -443,7 +464,7 @@ class Protocol(_Strict):
         if "robot" in (k.process_sigma_mm, k.process_sigma_deg):
             from magrun.robot import load_robots
 
-            robot = load_robots().get(self.robot)
+            robot = load_robots(self.robots_file).get(self.robot)
             if robot is not None and robot.prediction_sigma is None:
                 raise ValueError(
                     "controller.kalman.process_sigma_*: 'robot', but robot "
@@ -463,6 +484,12 @@ class Protocol(_Strict):
                 "split it into several protocol files"
             )
         return self
+
+    def robot_params(self) -> RobotParams:
+        """The protocol's robot, from its robots file."""
+        from magrun.robot import load_robot
+
+        return load_robot(self.robot, self.robots_file)
 
     # ---- expansion ---------------------------------------------------------------------
 

@@ -50,7 +50,7 @@ from magrun.protocol import (
     condition_slug,
 )
 from magrun.records import Tick
-from magrun.robot import RobotParams, load_robot
+from magrun.robot import RobotParams
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
 from magrun.tracking.fluoroscopy import FluoroscopyMimic
@@ -295,7 +295,7 @@ def build_controller(
     :func:`assemble` that needs no rig (the replay builds only this)."""
     protocol = trial.protocol
     scene = build_scene(protocol, coils or CoilSystem.load())
-    robot = load_robot(protocol.robot)
+    robot = protocol.robot_params()
     config = control_config(protocol.controller, robot, trial.condition)
     if tune is not None:
         config = tune(config)

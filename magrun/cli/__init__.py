@@ -23,6 +23,7 @@ library (the work lives in :mod:`magrun` and :mod:`analysis`).
 :mod:`.protocols`      ``validate``, ``protocol schema``, ``run``
 :mod:`.recordings`     ``view``, ``recover``, ``figures``
 :mod:`.replay`         ``replay``
+:mod:`.identify`       ``identify``
 :mod:`.bench`          ``bench nmpc | tick | recorder | sigkill | campaign | rig``
 :mod:`.rig`            ``rig-emulator``
 :mod:`.common`         the input-error exit, progress output, loading users' files
@@ -42,6 +43,7 @@ from magrun import __version__
 from magrun.cli.bench import bench
 from magrun.cli.common import INPUT_ERROR, InputError
 from magrun.cli.field import field
+from magrun.cli.identify import identify_cmd
 from magrun.cli.protocols import protocol_group, run, validate
 from magrun.cli.recordings import figures, recover_cmd, view
 from magrun.cli.replay import replay
@@ -60,7 +62,7 @@ def cli() -> None:
 
 for command in (
     field, track, tracker, validate, protocol_group, run, view, recover_cmd, figures, replay,
-    bench, rig_emulator,
+    identify_cmd, bench, rig_emulator,
 ):  # fmt: skip
     cli.add_command(command)
 

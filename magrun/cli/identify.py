@@ -1,0 +1,99 @@
+"""``magrun identify``: the robot's and the coils' parameters fitted to recordings."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import click
+
+from magrun.cli.common import InputError
+
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+@click.command("identify")
+@click.argument(
+    "recordings", nargs=-1, required=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+)  # fmt: skip
+@click.option(
+    "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
+    help="The robots file to write (YAML, robots.yaml's format): the identified robot.",
+)  # fmt: skip
+@click.option(
+    "--test", "test", multiple=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="A held-out recording: errors before and after, not fitted to (repeatable).",
+)  # fmt: skip
+@click.option(
+    "--model", type=click.Choice(["reference", "zernike", "lut"]), default="reference",
+    show_default=True, help="The field model the fit predicts with.",
+)  # fmt: skip
+@click.option(
+    "--horizon", type=click.IntRange(1, 50), default=5, show_default=True,
+    help="Fit the predictions 1 … K ticks ahead.",
+)  # fmt: skip
+@click.option("--name", help="The identified robot's name  [default: ROBOT_identified].")
+@click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON object.")
+def identify_cmd(
+    recordings: tuple[Path, ...],
+    out: Path,
+    test: tuple[Path, ...],
+    model: str,
+    horizon: int,
+    name: str | None,
+    as_json: bool,
+) -> None:
+    """Fit the robot's force factor (moment over drag) and the coils' relative gains
+    to RECORDINGS (one robot, one coil system) by least squares on open-loop predictions.
+
+    Prints the prediction error before and after, on the recordings fitted to and on the
+    --test recordings. Writes --out, a robots file with the identified robot (the nominal
+    robot with the fitted moment); a protocol uses it with `robots_file: OUT` and
+    `robot: NAME`. The coil gains are printed and in the file's header.
+    """
+    import yaml
+
+    from magrun.identify import identify, robot_entry
+    from magrun.recorded import RecordingReadError
+    from magrun.replay import ReplayError
+
+    if out.suffix.lower() not in (".yaml", ".yml"):
+        raise InputError(f"--out {out}: the robots file must be .yaml")
+    if name is not None and not _NAME.fullmatch(name):
+        raise InputError(f"--name {name!r}: a letter, then letters, digits or '_'")
+    shared = set(recordings) & set(test)
+    if shared:
+        raise InputError(f"{', '.join(map(str, shared))}: both fitted to and held out")
+
+    def progress(evaluations: int) -> None:
+        if evaluations % 20 == 0:
+            click.echo(f"fitting: {evaluations} evaluations of the predictions", err=True)
+
+    try:
+        result = identify(list(recordings), list(test), model, horizon, progress)
+    except (ReplayError, RecordingReadError) as exc:
+        raise InputError(str(exc)) from exc
+    robot_name = name or f"{result.robot}_identified"
+    entry = robot_entry(result, robot_name)
+    header = [
+        f"# {robot_name}: identified by magrun identify ({model} model, horizon {horizon})",
+        f"# force factor (moment / drag vs nominal) {result.force_factor:.4f}",
+        "# coil gains (field per ampere vs the model, geometric mean 1): "
+        + ", ".join(f"{k} {v:.4f}" for k, v in result.coil_gains.items()),
+    ]
+    for key, err in result.errors.items():
+        header.append(
+            f"# {key.replace('_', ' ')}: RMS position {err['position_mm'][-1]:.4f} mm, "
+            f"heading {err['heading_deg'][-1]:.3f} deg at {horizon} tick(s)"
+        )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(header) + "\n" + yaml.safe_dump(entry, sort_keys=False))
+    if as_json:
+        click.echo(json.dumps({**result.summary(), "out": str(out), "name": robot_name}))
+        return
+    for line in header:
+        click.echo(line[2:])
+    click.echo(f"wrote {out} (robot {robot_name})")
