@@ -17,10 +17,11 @@ The field comes from one of the models (``--model``):
 
 The robot is the protocol's, with its nominal parameters (a simulated rig draws each trial's
 parameters and coil gains around them: that difference is part of the error, and what
-``magrun identify`` is meant to estimate). Each tick's first ``latency`` (the protocol's
-declared latency, or the recorded compute time where it was charged as measured) runs on the
-previous tick's currents, as on the rig. The amplifiers' slew ramp and wall contacts are not
-modelled: in a phantom, ticks in contact predict worse.
+``magrun identify`` estimates). Each tick's first ``latency`` (the protocol's declared
+latency, or the recorded compute time where it was charged as measured) runs on the previous
+tick's currents, as on the rig, and each tick lasts until the next recorded one. The
+amplifiers' slew ramp and wall contacts are not modelled: in a phantom, ticks in contact
+predict worse.
 """
 
 from __future__ import annotations
@@ -106,12 +107,14 @@ def field_function(model: str, coils: Any) -> Any:
 @dataclass
 class Segments:
     """What open-loop rollouts need from one recording: the actual poses (n, 3), the
-    applied currents (n, C), each tick's latency (n,) s, the period, and the start ticks
-    from which ``horizon`` ticks of actual poses follow."""
+    applied currents (n, C), each tick's latency and length (n,) s (a tick whose compute
+    overran lasts longer than the period ``dt``), and the start ticks from which ``horizon``
+    ticks of actual poses follow."""
 
     actual: FloatArray
     currents: FloatArray
     lag: FloatArray
+    length: FloatArray
     dt: float
     starts: NDArray[np.int64]
     horizon: int
@@ -123,7 +126,10 @@ def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
     dt = 1.0 / protocol.controller.rate_hz
     latency = protocol.controller.latency
     lag = rec.compute_time if latency == "measured" else np.full(len(rec.t), float(latency))
-    lag = np.clip(np.nan_to_num(lag, nan=0.0), 0.0, dt)
+    # to 0.1 ms: measured latencies differ at every tick, and the rollout integrates each
+    # distinct length separately (the currents' switch moves by at most 0.05 ms)
+    length = np.append(np.diff(rec.t), dt)  # each tick until the next one, s
+    lag = np.round(np.clip(np.nan_to_num(lag, nan=0.0), 0.0, length), 4)
     actual = rec.poses["actual"]
     n = len(rec.t)
     ok = np.all(np.isfinite(actual), axis=1)
@@ -132,7 +138,7 @@ def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
     )
     if len(starts) == 0:
         raise ReplayError(f"{rec.path}: too few ticks with an actual pose for --horizon {horizon}")
-    return Segments(actual, rec.currents, lag, dt, starts, horizon)
+    return Segments(actual, rec.currents, lag, length, dt, starts, horizon)
 
 
 def rollout(
@@ -142,19 +148,19 @@ def rollout(
     1 … K ticks. ``gains`` scale each channel's field per ampere (default 1)."""
     from magrun.robot import NUMPY_OPS, exponential_substep
 
-    actual, currents, lag, dt, starts = seg.actual, seg.currents, seg.lag, seg.dt, seg.starts
+    actual, currents, lag, starts = seg.actual, seg.currents, seg.lag, seg.starts
     if gains is not None:
         currents = currents * gains  # a coil's gain scales its field per ampere
     d = actual[starts] - actual[starts - 1]
     d[:, 2] = _wrap(d[:, 2])
-    v = d / dt
+    v = d / seg.length[starts - 1][:, None]
     state: tuple[Any, ...] = (*actual[starts].T, *v.T)
     positions = np.empty((seg.horizon, len(starts), 2))
     headings = np.empty((seg.horizon, len(starts)))
     for j in range(seg.horizon):
         k = starts + j
         # the tick's first lag runs on the previous currents, the rest on this tick's
-        for held, duration in ((currents[k - 1], lag[k]), (currents[k], dt - lag[k])):
+        for held, duration in ((currents[k - 1], lag[k]), (currents[k], seg.length[k] - lag[k])):
             B, G = field(np.column_stack(state[:2]), held)
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
             for _ in range(m):
