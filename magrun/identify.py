@@ -121,13 +121,14 @@ def identify(
         robot = nominal.scaled(moment=force)
         return rollout(seg, robot, fld, gains)
 
+    targets = [seg.targets for seg in sets["train"]]
+
     def residuals(p: FloatArray) -> FloatArray:
         nonlocal evaluations
         evaluations += 1
         parts = []
-        for seg in sets["train"]:
+        for seg, target in zip(sets["train"], targets, strict=True):
             positions, headings = predict(p, seg)
-            target = np.stack([seg.actual[seg.starts + j + 1] for j in range(seg.horizon)])
             parts.append(((positions - target[..., :2]) * 1e3).ravel())
             turn = (headings - target[..., 2] + np.pi) % (2 * np.pi) - np.pi
             parts.append((turn * half * 1e3).ravel())

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from magrun.recorded import read_ticks
 from magrun.replay import ReplayError, trial_of
+from magrun.robot import exponential_substep
 
 FloatArray = NDArray[np.float64]
 #: the field models a recording can be replayed with
@@ -119,6 +120,11 @@ class Segments:
     starts: NDArray[np.int64]
     horizon: int
 
+    @property
+    def targets(self) -> FloatArray:
+        """The recorded poses 1 … K ticks after each start, shape (K, n, 3)."""
+        return np.stack([self.actual[self.starts + j + 1] for j in range(self.horizon)])
+
 
 def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
     """The :class:`Segments` of a recording (:class:`~magrun.recorded.RecordedTrial`) made
@@ -146,8 +152,6 @@ def rollout(
 ) -> tuple[FloatArray, FloatArray]:
     """Open-loop predictions from every start: positions (K, n, 2) and headings (K, n) after
     1 … K ticks. ``gains`` scale each channel's field per ampere (default 1)."""
-    from magrun.robot import NUMPY_OPS, exponential_substep
-
     actual, currents, lag, starts = seg.actual, seg.currents, seg.lag, seg.starts
     if gains is not None:
         currents = currents * gains  # a coil's gain scales its field per ampere
@@ -164,7 +168,7 @@ def rollout(
             B, G = field(np.column_stack(state[:2]), held)
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
             for _ in range(m):
-                state = _substep(state, B, G, robot, duration / m, exponential_substep, NUMPY_OPS)
+                state = _substep(state, B, G, robot, duration / m)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings
@@ -172,7 +176,7 @@ def rollout(
 
 def errors_of(seg: Segments, positions: FloatArray, headings: FloatArray) -> tuple[Any, Any]:
     """RMS position (mm) and heading (°) error at each horizon, shape (K,) each."""
-    target = np.stack([seg.actual[seg.starts + j + 1] for j in range(seg.horizon)])
+    target = seg.targets
     dp = positions - target[..., :2]
     pos = np.sqrt(np.mean(np.sum(dp**2, axis=-1), axis=1)) * 1e3
     ang = np.degrees(np.sqrt(np.mean(_wrap(headings - target[..., 2]) ** 2, axis=1)))
@@ -207,13 +211,11 @@ def prediction_errors(
     )  # fmt: skip
 
 
-def _substep(
-    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray, step: Any, ops: Any
-) -> tuple[Any, ...]:
+def _substep(state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray) -> tuple[Any, ...]:
     """One sub-step of length ``h`` (an array: each start's own) for every start at once."""
     if np.all(h == h.flat[0]):
         h0 = float(h.flat[0])
-        return state if h0 <= 0 else tuple(step(state, B, G, robot, h0, ops))
+        return state if h0 <= 0 else tuple(exponential_substep(state, B, G, robot, h0))
     # different lengths (measured latency): group the starts by length
     out = [np.array(s, dtype=np.float64, copy=True) for s in state]
     for value in np.unique(h):
@@ -223,6 +225,6 @@ def _substep(
         part = tuple(s[sel] for s in state)
         Bs = tuple(b[sel] for b in B)
         Gs = tuple(tuple(g[sel] for g in row) for row in G)
-        for i, s in enumerate(step(part, Bs, Gs, robot, float(value), ops)):
+        for i, s in enumerate(exponential_substep(part, Bs, Gs, robot, float(value))):
             out[i][sel] = s
     return tuple(out)

@@ -10,7 +10,6 @@ replay, which needs the protocol and the streams tick by tick, and keeps ``magru
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.records import POSE_STREAMS, yaw_of
+from magrun.records import POSE_STREAMS, metadata_value, pose_of
 
 FloatArray = NDArray[np.float64]
 
@@ -47,7 +46,7 @@ class RecordedTrial:
 
     @property
     def trial(self) -> dict[str, Any]:
-        return {k: _json_or_text(v) for k, v in self.metadata.get("trial", {}).items()}
+        return {k: metadata_value(v) for k, v in self.metadata.get("trial", {}).items()}
 
     @property
     def protocol_json(self) -> str:
@@ -87,8 +86,7 @@ def read_ticks(path: str | Path) -> RecordedTrial:
                 row = rows.setdefault(message.log_time, {})
                 topic = channel.topic
                 if topic.startswith("/robot/pose/"):
-                    p, q = msg.pose.position, msg.pose.orientation
-                    row[topic.rsplit("/", 1)[1]] = (p.x, p.y, yaw_of(q.z, q.w))
+                    row[topic.rsplit("/", 1)[1]] = tuple(pose_of(msg))
                 elif topic == "/coils/currents":
                     names = tuple(msg.names)
                     row["currents"] = tuple(msg.currents)
@@ -117,10 +115,3 @@ def read_ticks(path: str | Path) -> RecordedTrial:
         channel_names=names,
         compute_time=np.array([rows[t].get("compute_time", math.nan) for t in ticks]),
     )
-
-
-def _json_or_text(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except ValueError:
-        return text

@@ -57,7 +57,7 @@ from mcap_protobuf.schema import register_schema
 from numpy.typing import NDArray
 
 from magrun.realtime import lower_priority, pin_thread
-from magrun.records import POSE_STREAMS, Tick
+from magrun.records import POSE_STREAMS, Tick, metadata_text
 from magrun.records import RecordingSetup as RecordingSetup  # re-exported: the recorder's API
 from magrun.records import yaw_of as yaw_of
 from magrun.rerun_log import RerunLog, view_metadata
@@ -289,7 +289,7 @@ class TrialRecorder(Recorder):
         self._mcap = Writer(self._mcap_file, chunk_size=1 << 20, compression=compression)
         self._mcap.start(profile="", library="magrun")
         self._channels: dict[str, int] = {}
-        self._mcap.add_metadata("trial", {k: _text(v) for k, v in self.setup.trial.items()})
+        self._mcap.add_metadata("trial", {k: metadata_text(v) for k, v in self.setup.trial.items()})
         self._mcap.add_metadata("protocol", {"json": self.setup.protocol_json})
         self._mcap.add_metadata(
             "workspace",
@@ -485,9 +485,3 @@ def raw_image_bytes(frame: NDArray[np.uint8], t_ns: int) -> bytes:
         if not n:
             break
     return b"".join((header, _RAW_DATA_TAG, bytes(length), pixels))
-
-
-def _text(value: Any) -> str:
-    if isinstance(value, str):
-        return value
-    return json.dumps(value)

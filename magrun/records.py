@@ -6,6 +6,7 @@ recorder's writer process stays light. Also what a recording needs besides its t
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,6 +70,25 @@ POSE_STREAMS = ("actual", "tracked", "measured", "estimated", "predicted", "desi
 def yaw_of(qz: float, qw: float) -> float:
     """θ of a yaw quaternion (z, w components), in (−π, π]."""
     return math.atan2(2 * qw * qz, 1 - 2 * qz * qz)
+
+
+def pose_of(msg: Any) -> FloatArray:
+    """(x, y, θ) of a decoded ``foxglove.PoseInFrame`` as the recorder writes it."""
+    p, q = msg.pose.position, msg.pose.orientation
+    return np.array([p.x, p.y, yaw_of(q.z, q.w)])
+
+
+def metadata_text(value: Any) -> str:
+    """A metadata value as MCAP stores it: strings as they are, the rest as JSON."""
+    return value if isinstance(value, str) else json.dumps(value)
+
+
+def metadata_value(text: str) -> Any:
+    """The inverse of :func:`metadata_text` (text that is not JSON stays text)."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
 
 
 @dataclass

@@ -30,7 +30,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.records import POSE_STREAMS, RecordingSetup, yaw_of
+from magrun.records import (
+    POSE_STREAMS,
+    RecordingSetup,
+    metadata_text,
+    metadata_value,
+    pose_of,
+)
 
 if TYPE_CHECKING:
     from magrun.tracking.camera import Camera
@@ -165,7 +171,7 @@ class RerunLog:
         rec.send_recording_name(setup.name or recording_name(setup.trial))
         rec.log(
             "/trial",
-            rr.TextDocument("\n".join(f"{k}: {_text(v)}" for k, v in setup.trial.items())),
+            rr.TextDocument("\n".join(f"{k}: {metadata_text(v)}" for k, v in setup.trial.items())),
             static=True,
         )
         flip = rr.Transform3D(scale=[1.0, -1.0, 1.0])
@@ -419,17 +425,17 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
         meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         if "trial" not in meta:
             raise ValueError(f"{mcap}: no `trial` metadata record: not a magrun recording")
-        trial = {k: _json_or_text(v) for k, v in meta["trial"].items()}
+        trial = {k: metadata_value(v) for k, v in meta["trial"].items()}
         workspace = meta.get("workspace", {})
         boundaries = {
             k: np.asarray(v, dtype=np.float64).reshape(-1, 2)
-            for k, v in (_json_or_text(workspace.get("boundaries", "{}")) or {}).items()
+            for k, v in (metadata_value(workspace.get("boundaries", "{}")) or {}).items()
         }
-        half_width = _json_or_text(workspace.get("half_width_m", "null"))
+        half_width = metadata_value(workspace.get("half_width_m", "null"))
         view = meta.get("view", {})
         # one pass for the desired path (drawn from the start), one for the ticks
         desired = [
-            _pose(msg)
+            pose_of(msg)
             for _s, _c, _m, msg in reader.iter_decoded_messages(
                 topics=["/robot/pose/desired"], log_time_order=True
             )
@@ -446,7 +452,7 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
             boundaries=boundaries,
             workspace_half_width=float(half_width) if half_width is not None else None,
             reference=np.asarray(desired) if desired else None,
-            camera=_camera(_json_or_text(view.get("camera", "null"))),
+            camera=_camera(metadata_value(view.get("camera", "null"))),
             recording_id=view.get("recording_id") or f"{mcap.stem}@{mcap.parent.name}",
             name=view.get("name") or recording_name(trial),
         )
@@ -475,10 +481,10 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
             last_t = message.log_time
             topic = channel.topic
             if topic.startswith("/robot/pose/"):
-                current[topic.rsplit("/", 1)[1]] = _pose(msg)
+                current[topic.rsplit("/", 1)[1]] = pose_of(msg)
             elif topic.startswith("/replay/"):  # /replay/<label>/robot/pose/<stream>
                 parts = topic.split("/")
-                current[f"replay/{parts[2]}/{parts[-1]}"] = _pose(msg)
+                current[f"replay/{parts[2]}/{parts[-1]}"] = pose_of(msg)
             elif topic == "/coils/currents":
                 current["currents"] = np.asarray(msg.currents, dtype=np.float64)
             elif topic == "/controller/status":
@@ -499,11 +505,6 @@ def _send(log: RerunLog, t_ns: int, row: dict[str, Any]) -> int:
     poses = {k: v for k, v in row.items() if k not in ("currents", "compute_time", "image")}
     log.tick(t, poses, row["currents"], row.get("compute_time", math.nan), row.get("image"))
     return 1
-
-
-def _pose(msg: Any) -> FloatArray:
-    p, q = msg.pose.position, msg.pose.orientation
-    return np.array([p.x, p.y, yaw_of(q.z, q.w)])
 
 
 def _image(msg: Any) -> bytes | NDArray[np.uint8] | None:
@@ -528,16 +529,3 @@ def _camera(doc: Any) -> Camera | None:
     )  # fmt: skip
     cx, cy = doc.get("center_m", (0.0, 0.0))
     return Camera(config, (float(cx), float(cy)))
-
-
-def _json_or_text(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except ValueError:
-        return text
-
-
-def _text(value: Any) -> str:
-    if isinstance(value, str):
-        return value
-    return json.dumps(value)

@@ -189,3 +189,18 @@ def paper_set(root: Path) -> Path:
             )
         )  # fmt: skip
     return write_set(root, trials)
+
+
+#: the runner tests' tiny protocol (two fast methods, 1 s trials), made into others by --set
+TINY = Path(__file__).resolve().parent / "data" / "protocols" / "tiny.yaml"
+
+
+def record_tiny(out: Path, overrides: Sequence[str]) -> dict[str, Path]:
+    """Run the tiny protocol with ``overrides`` into ``out``; each method's first trial's MCAP
+    (every trial must end ``ok``)."""
+    from magrun.protocol import load_protocol
+    from magrun.runner import run_protocol
+
+    manifest = run_protocol(load_protocol(TINY, tuple(overrides)), out, jobs=1)
+    assert {e["status"] for e in manifest["trials"]} == {"ok"}
+    return {e["method"]: out / "tiny" / e["mcap"] for e in manifest["trials"] if e["trial"] == 0}

@@ -10,15 +10,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from mcap.reader import make_reader
+from synthetic import TINY, record_tiny
 
 from magrun.cli import cli
 from magrun.protocol import load_protocol
 from magrun.robot import load_robot, load_robots
-from magrun.runner import run_protocol
 from magrun.yamlio import YamlModelError
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
 #: the whole S at 25.5 Hz without noise, on a plant drawn well away from the nominal one
 PERTURBED = (
     "methods=[proposed, baseline3]",
@@ -34,10 +32,7 @@ PERTURBED = (
 @pytest.fixture(scope="module")
 def perturbed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """One trial of each method: the same seed, so the same drawn plant."""
-    out = tmp_path_factory.mktemp("identify")
-    manifest = run_protocol(load_protocol(TINY, PERTURBED), out, jobs=1)
-    assert {e["status"] for e in manifest["trials"]} == {"ok"}
-    return {e["method"]: out / "tiny" / e["mcap"] for e in manifest["trials"]}
+    return record_tiny(tmp_path_factory.mktemp("identify"), PERTURBED)
 
 
 def _plant(path: Path) -> dict[str, dict[str, float]]:

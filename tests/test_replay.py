@@ -11,17 +11,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from mcap.reader import make_reader
+from synthetic import TINY, record_tiny
 from test_recording import _rrd_rows
 
 from analysis.load import read_recording
 from magrun.cli import cli
 from magrun.protocol import load_protocol
 from magrun.replay import replay_estimator, rms_errors, write_replay
-from magrun.runner import run_protocol
 from magrun.yamlio import YamlModelError
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
 #: the tiny protocol as a 3 Hz, σ = 2 mm experiment of the proposed method and Baseline 3
 THREE_HZ = (
     "methods=[proposed, baseline3]",
@@ -33,10 +31,7 @@ THREE_HZ = (
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    out = tmp_path_factory.mktemp("replay")
-    manifest = run_protocol(load_protocol(TINY, THREE_HZ), out, jobs=1)
-    assert {e["status"] for e in manifest["trials"]} == {"ok"}
-    return {e["method"]: out / "tiny" / e["mcap"] for e in manifest["trials"]}
+    return record_tiny(tmp_path_factory.mktemp("replay"), THREE_HZ)
 
 
 def _assert_same_poses(a: np.ndarray, b: np.ndarray, atol: float) -> None:
@@ -220,11 +215,7 @@ EXACT_PLANT = (
 
 @pytest.fixture(scope="module")
 def exact_plant(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("exact")
-    manifest = run_protocol(load_protocol(TINY, EXACT_PLANT), out, jobs=1)
-    (entry,) = manifest["trials"]
-    assert entry["status"] == "ok"
-    return out / "tiny" / entry["mcap"]
+    return record_tiny(tmp_path_factory.mktemp("exact"), EXACT_PLANT)["proposed"]
 
 
 def test_the_plants_own_field_predicts_an_exact_plant(exact_plant: Path) -> None:
