@@ -242,6 +242,25 @@ class ControllerSettings(_Strict):
         ),
     )
     kalman: KalmanSettings = KalmanSettings()
+    coil_gains: str | None = Field(
+        None,
+        description=(
+            "A coil calibration file (what magrun identify --gains writes), relative to the "
+            "protocol file's folder: the controllers' field models scale each channel by its "
+            "gain. Default: none, the models as fitted."
+        ),
+    )
+
+    @field_validator("coil_gains")
+    @classmethod
+    def _gains_file(cls, value: str | None, info: ValidationInfo) -> str | None:
+        if value is None:
+            return None
+        from magrun.calibration import load_coil_gains
+
+        path = _resolve(value, info)
+        load_coil_gains(path)  # its own errors name the file and line
+        return str(path)
 
     @model_validator(mode="after")
     def _one_latency(self) -> ControllerSettings:
@@ -342,14 +361,22 @@ class SafetySettings(_Strict):
 
 class SimulationSettings(_Strict):
     """The simulated rig's plant: how far each trial's robot and coils are from the models'
-    nominal ones. Each factor is log-normal, exp(N(0, σ²)), drawn per trial from its seed;
-    the draw is recorded (MCAP metadata record ``plant``)."""
+    nominal ones. Each factor is log-normal, exp(N(0, σ²)), drawn per trial from its seed
+    (or once, from ``plant_seed``); the draw is recorded (MCAP metadata record ``plant``)."""
 
     mass_sigma: NonNegativeFloat = Field(0.1, description="σ of the mass (and inertia) factor.")
     drag_sigma: NonNegativeFloat = Field(0.1, description="σ of the drag coefficients' factor.")
     moment_sigma: NonNegativeFloat = Field(0.05, description="σ of the magnetic moment's factor.")
     coil_gain_sigma: NonNegativeFloat = Field(
         0.02, description="σ of each coil's gain (field per ampere), one draw per coil."
+    )
+    plant_seed: Annotated[int, Field(ge=0, lt=2**63)] | None = Field(
+        None,
+        description=(
+            "Draw the plant from this seed instead of each trial's: every trial then runs on "
+            "the same robot and coils, as on one real rig (the feedback noise and camera still "
+            "follow the trial's seed). Calibrate that rig with magrun identify."
+        ),
     )
 
 

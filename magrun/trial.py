@@ -32,7 +32,9 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
+from magrun.calibration import gains_in_order, load_coil_gains
 from magrun.control.base import Controller
 from magrun.control.estimation import KalmanConfig
 from magrun.control.methods import ControlConfig, make_controller
@@ -54,6 +56,9 @@ from magrun.robot import RobotParams
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
 from magrun.tracking.fluoroscopy import FluoroscopyMimic
+from magrun.yamlio import YamlModelError
+
+FloatArray = NDArray[np.float64]
 
 
 class RunError(RuntimeError):
@@ -174,7 +179,7 @@ def make_rig(
     )  # fmt: skip
     return SimRig.default(
         robot=robot, walls=walls, perturbation=perturbation, seed=seed,
-        camera=CameraConfig() if camera else None, coils=coils,
+        camera=CameraConfig() if camera else None, coils=coils, plant_seed=sim.plant_seed,
     )  # fmt: skip
 
 
@@ -286,6 +291,18 @@ class ControllerParts:
     build_s: float  # wall time of the controller's build (solvers, models)
 
 
+def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
+    """The protocol's coil calibration (``controller.coil_gains``) in ``coils``' channel
+    order, or None; a :class:`RunError` when the file's channels are not the coils'."""
+    path = protocol.controller.coil_gains
+    if path is None:
+        return None
+    try:
+        return gains_in_order(load_coil_gains(path), coils.channel_names, path)
+    except (ValueError, YamlModelError) as exc:
+        raise RunError(str(exc)) from exc
+
+
 def build_controller(
     trial: Trial,
     coils: CoilSystem | None = None,
@@ -294,14 +311,18 @@ def build_controller(
     """``trial``'s scene, robot, tuning, free space and controller: the part of
     :func:`assemble` that needs no rig (the replay builds only this)."""
     protocol = trial.protocol
-    scene = build_scene(protocol, coils or CoilSystem.load())
+    coils = coils or CoilSystem.load()
+    scene = build_scene(protocol, coils)
     robot = protocol.robot_params()
     config = control_config(protocol.controller, robot, trial.condition)
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)
+    gains = coil_gains_of(protocol, coils)
     t0 = time.perf_counter()
-    controller = make_controller(trial.method, robot, config, free_space=free_space)
+    controller = make_controller(
+        trial.method, robot, config, free_space=free_space, coil_gains=gains
+    )
     return ControllerParts(scene, robot, config, free_space, controller, time.perf_counter() - t0)
 
 

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from magrun.field.coils import CoilSystem
 from magrun.field.fitting import fit_reference
 from magrun.field.lut import LookupTableFieldModel
-from magrun.field.model import PlanarFieldModel
+from magrun.field.model import CalibratedFieldModel, PlanarFieldModel
 from magrun.field.reference import MU0, ReferenceMaps, thick_coil_field
 from magrun.field.zernike import ZernikeFieldModel
 
@@ -24,8 +24,14 @@ def workspace_points(rng: np.random.Generator, n: int, half: float = 0.049) -> n
     return rng.uniform(-half, half, size=(n, 2))
 
 
-@pytest.fixture(params=["zernike", "lut"])
+#: per-channel gains a few percent off 1, as a coil calibration finds them
+GAINS = np.array([0.97, 1.02, 1.01, 0.99, 1.03, 1.0, 0.98, 1.015])
+
+
+@pytest.fixture(params=["zernike", "lut", "calibrated"])
 def model(request, zernike_model, lut_model) -> PlanarFieldModel:
+    if request.param == "calibrated":
+        return CalibratedFieldModel(zernike_model, GAINS)
     return {"zernike": zernike_model, "lut": lut_model}[request.param]
 
 
@@ -226,3 +232,31 @@ def test_field_magnitudes_are_realistic(lut_model: LookupTableFieldModel) -> Non
     assert 5e-3 < 30 * B < 30e-3
     one = thick_coil_field([[0.0, 0.0, 0.0]], spec)
     assert np.linalg.norm(one) == pytest.approx(B, rel=1e-3)
+
+
+@pytest.mark.parametrize("base", ["zernike", "lut"])
+def test_calibrated_model_is_the_base_with_scaled_currents(
+    base: str, zernike_model, lut_model, rng: np.random.Generator
+) -> None:
+    """Fields are linear in the currents: a channel's gain g_c acts as the current g_c I_c on
+    the base model, in NumPy and in CasADi."""
+    plain = {"zernike": zernike_model, "lut": lut_model}[base]
+    calibrated = CalibratedFieldModel(plain, GAINS)
+    f = calibrated.casadi_function()
+    for p in workspace_points(rng, 10):
+        currents = rng.uniform(-30, 30, 8)
+        B, G = plain.field_and_gradient(p, currents * GAINS)
+        Bk, Gk = calibrated.field_and_gradient(p, currents)
+        assert_allclose(Bk, B, rtol=1e-12, atol=1e-16)
+        assert_allclose(Gk, G, rtol=1e-12, atol=1e-14)
+        Bc, Gc = f(p, currents)
+        assert_allclose(np.asarray(Bc).ravel(), B, rtol=1e-10, atol=1e-15)
+        assert_allclose(np.asarray(Gc), G, rtol=1e-10, atol=1e-13)
+    # and it is not the base model: a 3 % gain shows at full current
+    B0, _ = plain.field_and_gradient([0.0, 0.0], np.eye(8)[4] * 30)
+    B1, _ = calibrated.field_and_gradient([0.0, 0.0], np.eye(8)[4] * 30)
+    assert_allclose(B1, 1.03 * B0, rtol=1e-12)
+    with pytest.raises(ValueError, match="8 coil gains expected"):
+        CalibratedFieldModel(plain, GAINS[:7])
+    with pytest.raises(ValueError, match="finite and positive"):
+        CalibratedFieldModel(plain, -GAINS)

@@ -35,6 +35,11 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
     "--horizon", type=click.IntRange(1, 50), default=5, show_default=True,
     help="Fit the predictions 1 … K ticks ahead.",
 )  # fmt: skip
+@click.option(
+    "--gains", "gains_out", type=click.Path(dir_okay=False, path_type=Path),
+    help="Also write the coils' gains as a calibration file (YAML) for a protocol's "
+    "controller.coil_gains.",
+)  # fmt: skip
 @click.option("--name", help="The identified robot's name  [default: ROBOT_identified].")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON object.")
 def identify_cmd(
@@ -43,6 +48,7 @@ def identify_cmd(
     test: tuple[Path, ...],
     model: str,
     horizon: int,
+    gains_out: Path | None,
     name: str | None,
     as_json: bool,
 ) -> None:
@@ -52,16 +58,22 @@ def identify_cmd(
     Prints the prediction error before and after, on the recordings fitted to and on the
     --test recordings. Writes --out, a robots file with the identified robot (the nominal
     robot with the fitted moment); a protocol uses it with `robots_file: OUT` and
-    `robot: NAME`. The coil gains are printed and in the file's header.
+    `robot: NAME`. The coil gains are printed and in the file's header; --gains writes them
+    as a calibration file, which a protocol uses with `controller.coil_gains: FILE`.
     """
     import yaml
 
+    from magrun.calibration import gains_file_text
     from magrun.identify import identify, robot_entry
     from magrun.recorded import RecordingReadError
     from magrun.replay import ReplayError
 
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out {out}: the robots file must be .yaml")
+    if gains_out is not None and gains_out.suffix.lower() not in (".yaml", ".yml"):
+        raise InputError(f"--gains {gains_out}: the calibration file must be .yaml")
+    if gains_out is not None and gains_out.resolve() == out.resolve():
+        raise InputError(f"--gains {gains_out}: the same file as --out")
     if name is not None and not _NAME.fullmatch(name):
         raise InputError(f"--name {name!r}: a letter, then letters, digits or '_'")
     shared = set(recordings) & set(test)
@@ -91,9 +103,26 @@ def identify_cmd(
         )
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(header) + "\n" + yaml.safe_dump(entry, sort_keys=False))
+    if gains_out is not None:
+        gains_out.parent.mkdir(parents=True, exist_ok=True)
+        gains_out.write_text(
+            gains_file_text(
+                result.coil_gains,
+                model,
+                [
+                    f"coil gains identified by magrun identify ({model} model, horizon "
+                    f"{horizon}) from: {', '.join(p.name for p in recordings)}",
+                    f"used with the robot {robot_name} of {out.name} (the gains' common "
+                    "scale is in its moment)",
+                ],
+            )
+        )
     if as_json:
-        click.echo(json.dumps({**result.summary(), "out": str(out), "name": robot_name}))
+        extra = {"out": str(out), "name": robot_name, "gains": gains_out and str(gains_out)}
+        click.echo(json.dumps({**result.summary(), **extra}))
         return
     for line in header:
         click.echo(line[2:])
     click.echo(f"wrote {out} (robot {robot_name})")
+    if gains_out is not None:
+        click.echo(f"wrote {gains_out} (coil gains)")

@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from functools import cache
 
+from numpy.typing import ArrayLike
+
 from magrun.control import METHODS
 from magrun.control.base import Controller, Estimator, Planner
 from magrun.control.estimation import (
@@ -31,7 +33,7 @@ from magrun.control.estimation import (
 from magrun.control.nmpc import NMPC, NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner, PIDConfig, PIDPlanner
 from magrun.field.lut import LookupTableFieldModel
-from magrun.field.model import PlanarFieldModel
+from magrun.field.model import CalibratedFieldModel, PlanarFieldModel
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.freespace import FreeSpace
 from magrun.robot import RobotParams, load_robot
@@ -62,8 +64,12 @@ def make_controller(
     zernike: PlanarFieldModel | None = None,
     lut: PlanarFieldModel | None = None,
     free_space: FreeSpace | None = None,
+    coil_gains: ArrayLike | None = None,
 ) -> Controller:
     """Build one of :data:`METHODS` for ``robot`` (default models: the shipped ones).
+
+    ``coil_gains``: each channel's field per ampere relative to the models (a coil
+    calibration, :mod:`magrun.calibration`); both models are scaled by them. Default: none.
 
     ``free_space``: the workspace or phantom the robot moves in; every method's estimate is
     kept inside it, and the NMPC methods plan with its corridor. Default: the coil
@@ -76,6 +82,9 @@ def make_controller(
     if zernike is None or lut is None:
         z0, l0 = shipped_models()
         zernike, lut = zernike or z0, lut or l0
+    if coil_gains is not None:
+        zernike = CalibratedFieldModel(zernike, coil_gains)
+        lut = CalibratedFieldModel(lut, coil_gains)
     nmpc_cfg = replace(cfg.nmpc, dt=cfg.dt)
     if free_space is None:
         free_space = FreeSpace.square(

@@ -176,3 +176,48 @@ def weighted_sum(weights: Any, terms: Any) -> Expr:
         elif w != 0:
             acc = acc + float(w) * t
     return acc
+
+
+class CalibratedFieldModel(PlanarFieldModel):
+    """A model with each channel's field per ampere scaled by a measured gain.
+
+    A real coil's field per ampere differs from its model's by a few percent (winding count,
+    geometry, the amplifier's current calibration). Fields are linear in the currents, so a
+    channel's gain scales its unit-current field and gradient::
+
+        B(p, I) = Σ_c g_c I_c B_c(p)
+
+    ``gains`` come from a calibration (``magrun identify --gains``), one per channel in
+    :attr:`CoilSystem.channels` order. The base model is evaluated unchanged: the NumPy maps
+    are scaled after, and the CasADi expressions are the base's with the currents scaled
+    before, so a compiled controller's code changes only in those constants.
+    """
+
+    def __init__(self, base: PlanarFieldModel, gains: ArrayLike) -> None:
+        g = np.asarray(gains, dtype=np.float64)
+        if g.shape != (base.coils.n_channels,):
+            raise ValueError(
+                f"{base.coils.n_channels} coil gains expected (one per channel), got {g.shape}"
+            )
+        if not np.all(np.isfinite(g) & (g > 0)):
+            raise ValueError(f"coil gains must be finite and positive, got {g.tolist()}")
+        super().__init__(base.coils)
+        self.base = base
+        self.gains = g
+
+    def type_field(self, coil_type: str, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The base model's unscaled type map (gains are per channel, not per type)."""
+        return self.base.type_field(coil_type, q)
+
+    def type_field_casadi(
+        self, coil_type: str, qx: Expr, qy: Expr
+    ) -> tuple[list[Expr], list[list[Expr]]]:
+        return self.base.type_field_casadi(coil_type, qx, qy)
+
+    def unit_field_and_gradient(self, positions: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        B, G = self.base.unit_field_and_gradient(positions)
+        return B * self.gains[:, None], G * self.gains[:, None, None]
+
+    def casadi_field_and_gradient(self, position: Expr, currents: Expr) -> tuple[Expr, Expr]:
+        scaled = ca.vertcat(*(float(g) * currents[c] for c, g in enumerate(self.gains)))
+        return self.base.casadi_field_and_gradient(position, scaled)

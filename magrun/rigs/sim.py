@@ -98,6 +98,9 @@ class SimRig(Rig):
         Per-trial parameter spread; default :data:`DEFAULT_PERTURBATION`.
     seed : int
         Seeds the parameter draw and the camera's lighting and noise.
+    plant_seed : int, optional
+        Seeds the parameter draw instead of ``seed``: rigs made with one ``plant_seed`` have
+        the same robot and coils (one real rig, many trials).
     fine_step : float
         Integration step, s.
     camera : CameraConfig, optional
@@ -118,6 +121,7 @@ class SimRig(Rig):
         fine_step: float = 1e-3,
         camera: CameraConfig | None = None,
         compiled: bool = True,
+        plant_seed: int | None = None,
     ) -> None:
         if grid.channel_names != coils.channel_names:
             raise ValueError("the field grid was built for other channels than the coil system")
@@ -129,9 +133,8 @@ class SimRig(Rig):
         self.max_slew_rate = coils.max_slew_rate
         self.walls = walls if walls is not None else Walls.box(coils.workspace_half_width)
         self.nominal_robot = robot
-        self.robot, self.coil_gains = perturbation.draw(
-            robot, coils.n_channels, np.random.default_rng(seed)
-        )
+        plant_rng = np.random.default_rng(seed if plant_seed is None else plant_seed)
+        self.robot, self.coil_gains = perturbation.draw(robot, coils.n_channels, plant_rng)
         self.fine_step = fine_step
         self.camera = Camera(camera) if camera is not None else None
         self.seed = seed
@@ -157,14 +160,16 @@ class SimRig(Rig):
         seed: int = 0,
         camera: CameraConfig | None = None,
         coils: CoilSystem | None = None,
+        plant_seed: int | None = None,
     ) -> SimRig:
         """The paper's rig with the shipped reference maps (``robot``: a robot of robots.yaml
-        or its parameters; ``coils``: the paper's coil system, already loaded)."""
+        or its parameters; ``coils``: the paper's coil system, already loaded; ``plant_seed``:
+        see the class)."""
         coils = coils or CoilSystem.load()
         params = load_robot(robot) if isinstance(robot, str) else robot
         return cls(
             coils, ChannelGrid.load(coils), params, walls, perturbation, seed,
-            camera=camera,
+            camera=camera, plant_seed=plant_seed,
         )  # fmt: skip
 
     def reset(self, pose: ArrayLike) -> None:
