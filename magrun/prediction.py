@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from magrun.recorded import read_ticks
 from magrun.replay import ReplayError, trial_of
 from magrun.robot import exponential_substep
+from magrun.trial import RunError, coil_gains_of
 
 FloatArray = NDArray[np.float64]
 #: the field models a recording can be replayed with
@@ -188,7 +189,8 @@ def prediction_errors(
 ) -> PredictionErrors:
     """The open-loop prediction error of ``model`` on the recording at ``path`` (module doc)
     at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
-    robot). Raises :class:`~magrun.replay.ReplayError` on what it cannot use."""
+    robot, or ``controller.coil_gains``: the model with a coil calibration). Raises
+    :class:`~magrun.replay.ReplayError` on what it cannot use."""
     from magrun.field.coils import CoilSystem
 
     if horizon < 1:
@@ -201,9 +203,14 @@ def prediction_errors(
             f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "
             f"has {coils.n_channels}"
         )
+    try:
+        gains = coil_gains_of(protocol, coils)  # a calibration given with --set
+    except RunError as exc:
+        raise ReplayError(str(exc)) from exc
     seg = segments_of(rec, protocol, horizon)
     t0 = time.perf_counter()
-    positions, headings = rollout(seg, protocol.robot_params(), field_function(model, coils))
+    fld = field_function(model, coils)
+    positions, headings = rollout(seg, protocol.robot_params(), fld, gains)
     pos, ang = errors_of(seg, positions, headings)
     return PredictionErrors(
         model=model, robot=protocol.robot, dt=seg.dt, starts=len(seg.starts), position_mm=pos,
