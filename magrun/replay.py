@@ -97,10 +97,13 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
     try:
         protocol = protocol_from_json(rec.protocol_json, source, overrides)
     except YamlModelError as exc:
-        hint = ""
-        if "phantom" in str(exc):
-            hint = "\n(a phantom recorded elsewhere: give its file, --set workspace.phantom=PATH)"
-        raise ReplayError(f"{exc}{hint}") from exc
+        # files the protocol named, recorded as paths on the machine that ran it
+        hints = [
+            f"\n(a {what} recorded elsewhere: give its file, --set {key}=PATH)"
+            for key, what in _RECORDED_FILES.items()
+            if key in str(exc)
+        ]
+        raise ReplayError(f"{exc}{''.join(hints)}") from exc
     try:
         condition = Conditions(**{k: meta[k] for k in Conditions.model_fields if k in meta})
         return Trial(
@@ -110,6 +113,14 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
         )  # fmt: skip
     except (KeyError, ValueError, TypeError) as exc:
         raise ReplayError(f"{rec.path}: the `trial` metadata record is incomplete: {exc}") from exc
+
+
+#: protocol settings that name files, as replay's errors hint at them
+_RECORDED_FILES = {
+    "workspace.phantom": "phantom",
+    "robots_file": "robots file",
+    "controller.coil_gains": "coil calibration",
+}
 
 
 def replay_estimator(
@@ -132,7 +143,7 @@ def replay_estimator(
         KalmanPoseFilter,
         MeasurementOrPrediction,
     )
-    from magrun.trial import build_controller
+    from magrun.trial import RunError, build_controller
 
     if estimator is not None and estimator not in ESTIMATORS:
         raise ReplayError(f"unknown estimator {estimator!r}; one of {', '.join(ESTIMATORS)}")
@@ -140,7 +151,7 @@ def replay_estimator(
     trial = trial_of(rec, overrides)
     try:
         parts = build_controller(trial)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RunError) as exc:
         raise ReplayError(f"{rec.path}: cannot rebuild the trial's controller: {exc}") from exc
     controller = parts.controller
     if estimator is not None:

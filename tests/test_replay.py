@@ -306,3 +306,19 @@ def test_model_replay_on_the_command_line(exact_plant: Path) -> None:
     result = CliRunner().invoke(cli, ["replay", str(exact_plant), "--model", "lut", "--out", "x"])
     assert result.exit_code == 2
     assert "--model writes nothing" in result.output
+
+
+def test_a_calibration_recorded_elsewhere_is_asked_for(coils, tmp_path: Path) -> None:
+    """A recording names its protocol's files by the paths they had where it ran: replayed
+    where the coil calibration is not, replay exits 2 and says which setting gives it."""
+    from magrun.calibration import gains_file_text
+
+    gains = tmp_path / "gains.yaml"
+    gains.write_text(gains_file_text(dict.fromkeys(coils.channel_names, 1.01), "reference"))
+    overrides = ("methods=[baseline3]", "sweep.tracking_rate_hz=[25.5]", "duration_s=0.5")
+    path = record_tiny(tmp_path / "rec", (*overrides, f"controller.coil_gains={gains}"))
+    gains.unlink()
+    result = CliRunner().invoke(cli, ["replay", str(path["baseline3"]), "--out", "x.mcap"])
+    assert result.exit_code == 2, result.output
+    assert "controller.coil_gains" in result.output
+    assert "--set controller.coil_gains=PATH" in result.output
