@@ -3,6 +3,7 @@ prediction error the Kalman filter's process noise comes from."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 
@@ -153,3 +154,33 @@ def test_tracking_lost_counts_only_the_frames_taken() -> None:
     assert log.tracking_lost == 1
     log.framed = None  # no schedule recorded: every tick took a frame
     assert log.tracking_lost == 6
+
+
+def test_second_phantoms_turn_keeps_the_body_off_the_critical_wall() -> None:
+    """The capsule turns at the path's last point: at every heading its body (axis of length
+    L − D, radius D/2) clears the medial wall by 1.3 mm (5.0 − 2.3 − 1.4: the wall's end at
+    the chamber's mouth is 5.0 mm away), against 0.8 mm at the chamber's centre. Computed on
+    the axis and the wall sampled densely."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "channel_bends.yaml")
+    robot = load_robots()["drug_delivery"]
+    wall = phantom.boundaries["medial"]
+    t = np.linspace(0.0, 1.0, 50)[:, None]
+    wall_points = np.concatenate([a + t * (b - a) for a, b in itertools.pairwise(wall)])
+
+    def least_clearance(centre: np.ndarray) -> float:
+        half = (robot.length - robot.diameter) / 2
+        clear = np.inf
+        for heading in np.linspace(0.0, math.pi, 181):  # the axis at θ and θ + π is one
+            axis = centre + np.linspace(-half, half, 41)[:, None] * [
+                math.cos(heading),
+                math.sin(heading),
+            ]
+            d = np.hypot(*(axis[:, None, :] - wall_points[None]).transpose(2, 0, 1))
+            clear = min(clear, float(d.min()) - robot.diameter / 2)
+        return clear
+
+    assert phantom.path is not None
+    turn = phantom.path[-1]
+    centre = np.array([23.0e-3, 15.0e-3])  # the chamber's centre (the file's chamber arc)
+    assert least_clearance(turn) == pytest.approx(1.3e-3, abs=0.05e-3)
+    assert least_clearance(centre) == pytest.approx(0.8e-3, abs=0.05e-3)
