@@ -211,6 +211,13 @@ class KalmanSettings(_Strict):
             "prediction_sigma_deg."
         ),
     )
+    heading_bias_sigma_deg: NonNegativeFloat = Field(
+        0.0,
+        description=(
+            "The filter's heading bias (the model's heading drift per tick, learnt from the "
+            "measured headings): its random walk per control tick, degrees; 0: no bias state."
+        ),
+    )
 
 
 #: the simulated rig's default latency per tick, ms: a camera tick's compute for the proposed

@@ -215,6 +215,7 @@ def control_config(
             measurement_angle=math.radians(sigma_deg),
             process_position=process_m,
             process_angle=process_rad,
+            heading_bias=math.radians(k.heading_bias_sigma_deg),
         ),
     )
 

@@ -244,3 +244,21 @@ def test_latency_and_the_older_key_together_are_refused() -> None:
         _protocol(controller={"latency_ms": 5, "charge_compute_time": True})
     with pytest.raises(ValidationError, match="latency_ms"):
         _protocol(controller={"latency_ms": -1})
+
+
+@pytest.mark.parametrize("sigma_deg", [0.0, 0.5])
+def test_the_heading_bias_setting_reaches_the_proposed_methods_filter(sigma_deg: float) -> None:
+    """controller.kalman.heading_bias_sigma_deg builds the filter's bias state (4 states,
+    random walk σ in rad per tick); 0 keeps the pose-only filter."""
+    from magrun.control.estimation import KalmanPoseFilter
+    from magrun.trial import assemble
+
+    protocol = load_protocol(
+        ROOT / "protocols" / "spine.yaml",
+        [f"controller.kalman.heading_bias_sigma_deg={sigma_deg}"],
+    )
+    parts = assemble(protocol.expand(quick=True)[0])
+    estimator = parts.controller.estimator
+    assert isinstance(estimator, KalmanPoseFilter)
+    assert estimator.config.heading_bias == pytest.approx(math.radians(sigma_deg), rel=1e-12)
+    assert estimator.n == (4 if sigma_deg else 3)

@@ -30,9 +30,26 @@ A 2 mm measurement in a channel whose free width is 2 mm carries little across-c
 information that the walls do not; the truncated mean keeps the estimate off the edge of
 that interval where the walls say the robot is unlikely to be.
 
+Heading bias (optional)
+-----------------------
+Where the coils' field is off in direction (their gains are off by a few per cent and the
+NMPC keeps the field near its least aligned value, so a small absolute error turns it by
+degrees), the robot settles at another heading than the model's: between two frames the
+model's heading drifts from the robot's by the same amount every tick, and the filter, which
+trusts the model between frames, follows the model. With ``heading_bias`` > 0 the state
+gains that drift, b (rad per tick), as a random walk (σ = ``heading_bias`` per tick)::
+
+    state (x, y, θ, b):   θₖ⁻ = NMPC prediction of θ + b,     bₖ = bₖ₋₁ + w,  w ~ N(0, σ_b²)
+
+so F is I with F[θ, b] = 1, H measures (x, y, θ). The heading measurements, which the camera
+gives to a degree or two, then estimate b frame by frame (a constant drift is followed with
+no lasting error: tests/test_estimation.py), and the heading between frames follows the
+robot instead of the model. The position has no such state: at σ = 2 mm and 3 Hz a velocity
+bias is not observable in the seconds over which it changes.
+
 Defaults (:class:`KalmanConfig`): measurement σ 1 mm and 3°, process σ 0.3 mm and 2° per
 40 ms tick (the NMPC's one-step prediction error on the simulated plant is ~0.1 mm, plus the
-model mismatch the per-trial perturbations add).
+model mismatch the per-trial perturbations add), no heading bias.
 """
 
 from __future__ import annotations
@@ -61,6 +78,10 @@ class KalmanConfig:
     process_angle: float = math.radians(2.0)
     initial_position: float = 1.0e-3
     initial_angle: float = math.radians(5.0)
+    #: the heading bias's random walk per tick, rad per tick (module doc; 0: no bias state)
+    heading_bias: float = 0.0
+    #: the heading bias's initial standard deviation, rad per tick
+    initial_heading_bias: float = math.radians(0.4)
 
     def matrices(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``(Q, R, P0)`` as 3×3 diagonal covariances."""
@@ -80,58 +101,84 @@ class KalmanPoseFilter(Estimator):
 
     def __init__(self, config: KalmanConfig | None = None) -> None:
         self.config = config or KalmanConfig()
-        self.Q, self.R, self.P0 = self.config.matrices()
-        self.kf = KalmanFilter(dim_x=3, dim_z=3)
+        c = self.config
+        if not c.heading_bias >= 0:
+            raise ValueError(f"heading_bias must be >= 0, got {c.heading_bias}")
+        Q, R, P0 = c.matrices()
+        #: state size: the pose (3), and the heading bias (module doc) where it is on
+        self.n = 4 if c.heading_bias > 0 else 3
+        n = self.n
+        self.Q, self.P0, self.R = np.zeros((n, n)), np.zeros((n, n)), R
+        self.Q[:3, :3], self.P0[:3, :3] = Q, P0
+        self.F, self.H = np.eye(n), np.eye(3, n)
+        if n == 4:
+            self.Q[3, 3] = c.heading_bias**2
+            self.P0[3, 3] = c.initial_heading_bias**2
+            self.F[2, 3] = 1.0  # θ⁻ = prediction + b
+        self.kf = KalmanFilter(dim_x=n, dim_z=3)
         self.reset(np.zeros(3))
 
     def reset(self, pose: FloatArray) -> None:
-        self.kf.x = np.asarray(pose, dtype=np.float64).reshape(3, 1).copy()
-        self.kf.F = np.eye(3)
-        self.kf.H = np.eye(3)
+        self.kf.x = np.zeros((self.n, 1))
+        self.kf.x[:3, 0] = np.asarray(pose, dtype=np.float64)
+        self.kf.F = self.F.copy()
+        self.kf.H = self.H.copy()
         self.kf.Q = self.Q.copy()
         self.kf.R = self.R.copy()
         self.kf.P = self.P0.copy()
 
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
         if prediction is not None:
-            self.kf.x = np.asarray(prediction, dtype=np.float64).reshape(3, 1).copy()
+            self.kf.x[:3, 0] = np.asarray(prediction, dtype=np.float64)
             self.kf.predict()
         if measurement is not None:
             z = np.asarray(measurement, dtype=np.float64).copy()
             z[2] = angle_near(z[2], float(self.kf.x[2, 0]))
             self.kf.update(z.reshape(3, 1))
-        return self.kf.x.ravel().copy()
+        return self.pose
+
+    @property
+    def pose(self) -> FloatArray:
+        """The pose estimate (x, y, θ), SI."""
+        return np.asarray(self.kf.x[:3, 0], dtype=np.float64).copy()
+
+    @property
+    def heading_bias(self) -> float:
+        """The estimated heading drift of the model, rad per tick (0 without the state)."""
+        return float(self.kf.x[3, 0]) if self.n == 4 else 0.0
 
     @property
     def covariance(self) -> FloatArray:
-        return np.asarray(self.kf.P, dtype=np.float64).copy()
+        """The pose's covariance (3×3, SI)."""
+        return np.asarray(self.kf.P[:3, :3], dtype=np.float64).copy()
 
     def constrain(self, pose: FloatArray) -> None:
         # projecting the estimate onto the free space (a state constraint): the mean moves,
         # the covariance is kept (a conservative choice: the projection only removes states)
-        self.kf.x = np.asarray(pose, dtype=np.float64).reshape(3, 1).copy()
+        self.kf.x[:3, 0] = np.asarray(pose, dtype=np.float64)
 
     def truncate(self, direction: FloatArray, lo: float, hi: float) -> FloatArray:
         """Condition the estimate on its component along ``direction`` lying within
         ``[lo, hi]`` of where it is now (module doc): the truncated normal's mean and variance
-        along ``direction`` (a 3-vector of the state x, y, θ, unit length), the rest by
-        regression. Returns the new estimate."""
-        d = np.asarray(direction, dtype=np.float64).reshape(3, 1)
+        along ``direction`` (a 3-vector of the pose x, y, θ, unit length), the rest of the
+        state (the heading bias too) by regression. Returns the new pose estimate."""
+        d = np.zeros((self.n, 1))
+        d[:3, 0] = np.asarray(direction, dtype=np.float64)
         P = np.asarray(self.kf.P, dtype=np.float64)
         var = (d.T @ P @ d).item()
         if not (var > 0 and lo <= 0 <= hi and hi > lo):
-            return self.kf.x.ravel().copy()
+            return self.pose
         sigma = math.sqrt(var)
         # the truncated normal of the offset from the current mean, in units of sigma
         a, b = lo / sigma, hi / sigma
         mean, variance = truncnorm.stats(a, b, moments="mv")
         shift, ratio = float(mean) * sigma, float(variance)
         if not (math.isfinite(shift) and math.isfinite(ratio)):
-            return self.kf.x.ravel().copy()
+            return self.pose
         gain = P @ d / var
         self.kf.x = self.kf.x + gain * shift
         self.kf.P = P - (P @ d @ d.T @ P) * (1.0 - ratio) / var
-        return self.kf.x.ravel().copy()
+        return self.pose
 
 
 class MeasurementOrPrediction(Estimator):
