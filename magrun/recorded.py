@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.records import POSE_STREAMS, metadata_value, pose_of
+from magrun.recover import is_mcap
 
 FloatArray = NDArray[np.float64]
 
@@ -69,6 +70,8 @@ def read_ticks(path: str | Path) -> RecordedTrial:
     from mcap_protobuf.decoder import DecoderFactory
 
     path = Path(path)
+    if path.is_file() and not is_mcap(path):
+        raise RecordingReadError(f"{path}: not an MCAP file (a recording is a trial's .mcap)")
     topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
     rows: dict[int, dict[str, Any]] = {}
     names: tuple[str, ...] = ()

@@ -182,7 +182,7 @@ def test_replay_refuses_other_files(recorded: dict[str, Path], tmp_path: Path) -
     text.write_text("not a recording")
     result = CliRunner().invoke(cli, ["replay", str(text)])
     assert result.exit_code == 2
-    assert "notes.mcap" in result.output
+    assert "notes.mcap: not an MCAP file" in result.output
     same = recorded["proposed"]
     result = CliRunner().invoke(cli, ["replay", str(same), "--out", str(same)])
     assert result.exit_code == 2
