@@ -184,3 +184,40 @@ def test_second_phantoms_turn_keeps_the_body_off_the_critical_wall() -> None:
     centre = np.array([23.0e-3, 15.0e-3])  # the chamber's centre (the file's chamber arc)
     assert least_clearance(turn) == pytest.approx(1.3e-3, abs=0.05e-3)
     assert least_clearance(centre) == pytest.approx(0.8e-3, abs=0.05e-3)
+
+
+def test_second_phantoms_path_keeps_the_body_off_the_critical_wall() -> None:
+    """The delivery plan: the capsule (axis L − D, radius D/2) on the path, heading along it,
+    clears the medial (critical) wall by at least 1.35 mm at every point (the file: 1.4 mm
+    wherever the channel allows; 1.5 mm in the second bend, where the body's ends swing out
+    towards the critical outer wall) and fits the channel (0.4 mm from the lateral wall).
+    Computed on the axis and the walls sampled densely, independently of the analysis
+    package's clearance."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "channel_bends.yaml")
+    robot = load_robots()["drug_delivery"]
+    assert phantom.path is not None
+    t = np.linspace(0.0, 1.0, 30)[:, None]
+
+    def dense(points: np.ndarray) -> np.ndarray:
+        return np.concatenate([a + t * (b - a) for a, b in itertools.pairwise(points)])
+
+    walls = {name: dense(phantom.boundaries[name]) for name in ("medial", "lateral")}
+    half, radius = (robot.length - robot.diameter) / 2, robot.diameter / 2
+    least = {"medial": np.inf, "lateral": np.inf}
+    second_bend = np.inf
+    for a, b in itertools.pairwise(phantom.path):
+        heading = math.atan2(b[1] - a[1], b[0] - a[0])
+        centre = (a + b) / 2
+        axis = centre + np.linspace(-half, half, 21)[:, None] * [
+            math.cos(heading),
+            math.sin(heading),
+        ]
+        for name, w in walls.items():
+            clear = float(np.hypot(*(axis[:, None, :] - w[None]).transpose(2, 0, 1)).min()) - radius
+            least[name] = min(least[name], clear)
+            in_second_bend = centre[0] > 1.0e-3 and centre[1] > 1.5e-3 and centre[0] < 13.9e-3
+            if name == "medial" and in_second_bend:
+                second_bend = min(second_bend, clear)
+    assert least["medial"] >= 1.35e-3
+    assert second_bend >= 1.45e-3
+    assert least["lateral"] >= 0.4e-3
