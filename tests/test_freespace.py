@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from magrun.control.base import Controller, Plan, Planner
-from magrun.control.estimation import KalmanPoseFilter
+from magrun.control.estimation import KalmanConfig, KalmanPoseFilter
 from magrun.control.methods import make_controller
 from magrun.control.nmpc import NMPC, STATE_SCALE, NMPCConfig
 from magrun.freespace import FreeSpace
@@ -97,11 +97,13 @@ measurements = st.lists(
 
 
 @settings(max_examples=60, deadline=None)
-@given(zs=measurements)
-def test_estimate_never_leaves_the_free_space(spine: FreeSpace, zs) -> None:
-    """The Kalman filter fed adversarial measurements (anywhere in ±60 mm, any heading, or
-    none): every estimate the controller hands its planner is inside the channel."""
-    c = Controller("proposed", KalmanPoseFilter(), _Still(), 0.04, 30.0, 1e4, 8, spine)
+@given(zs=measurements, heading_bias=st.sampled_from([0.0, math.radians(0.5)]))
+def test_estimate_never_leaves_the_free_space(spine: FreeSpace, zs, heading_bias) -> None:
+    """The Kalman filter (with and without its heading-bias state) fed adversarial
+    measurements (anywhere in ±60 mm, any heading, or none): every estimate the controller
+    hands its planner is inside the channel."""
+    kf = KalmanPoseFilter(KalmanConfig(heading_bias=heading_bias))
+    c = Controller("proposed", kf, _Still(), 0.04, 30.0, 1e4, 8, spine)
     c.reset(np.array([-6e-3, -13.4e-3, 0.0]))
     ref = np.zeros((21, 3))
     for z in zs:
