@@ -10,6 +10,7 @@ import click
 
 from magrun.cli.common import SET_HELP, InputError
 from magrun.cli.recordings import view
+from magrun.control import METHODS
 
 _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
 
@@ -23,12 +24,23 @@ _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
     "measurement else the prediction, or the last measurement held  [default: the method's].",
 )  # fmt: skip
 @click.option(
-    "--label", default="replay", show_default=True,
-    help="Names the replayed streams: /replay/LABEL/robot/pose/{estimated,predicted}.",
+    "--label",
+    help="Names the replayed streams: /replay/LABEL/robot/pose/{estimated,predicted}  "
+    "[default: replay; with --resimulate: resim, naming only the output].",
 )  # fmt: skip
 @click.option(
     "--out", type=click.Path(dir_okay=False, path_type=Path),
     help="The output MCAP  [default: RECORDING's name + .LABEL.mcap, beside it].",
+)  # fmt: skip
+@click.option(
+    "--resimulate", is_flag=True,
+    help="Instead of the estimator: run the simulated trial again from its recorded protocol "
+    "and seed (the same plant draw, lighting and noise), as recorded or with --method / "
+    "--set; a whole new recording.",
+)  # fmt: skip
+@click.option(
+    "--method", type=click.Choice(list(METHODS)),
+    help="With --resimulate: the control method to run instead of the recorded one.",
 )  # fmt: skip
 @click.option(
     "--model", type=click.Choice(["zernike", "lut", "reference"]),
@@ -47,8 +59,10 @@ def replay(
     recording: Path,
     overrides: tuple[str, ...],
     estimator: str | None,
-    label: str,
+    label: str | None,
     out: Path | None,
+    resimulate: bool,
+    method: str | None,
     model: str | None,
     horizon: int,
     as_json: bool,
@@ -68,12 +82,28 @@ def replay(
     predicts 1 … --horizon ticks ahead under the recorded currents and prints the RMS
     position (mm) and heading (°) error at each horizon (the paper's prediction-accuracy
     test on any recording). Nothing is written.
+
+    With --resimulate, runs a simulated trial again from its recorded protocol and seed and
+    records it to OUT.mcap and OUT.rrd. Unchanged (and with a declared latency) it reproduces
+    the recording's pose and current messages byte for byte, and says whether it did; with
+    --method or --set the new controller meets the same plant, lighting and noise, a paired
+    comparison. Prints both trials' RMS tracking errors.
     """
     from magrun.recorded import RecordingReadError
     from magrun.replay import ReplayError, replay_estimator, write_replay
 
     if recording.suffix.lower() != ".mcap":
         raise InputError(f"{recording}: replay reads a trial's .mcap recording")
+    if method is not None and not resimulate:
+        raise InputError("--method re-runs the trial's control: it needs --resimulate")
+    if resimulate:
+        if model is not None or estimator is not None:
+            raise InputError(
+                "--resimulate runs the whole trial: it takes no --model or --estimator"
+            )
+        _resimulate(ctx, recording, method, overrides, label or "resim", out, as_json, open_view)
+        return
+    label = label or "replay"
     if model is not None:
         if estimator or out or open_view or label != "replay":
             raise InputError(
@@ -135,3 +165,58 @@ def _model_replay(
     click.echo("  ticks ahead   RMS position (mm)   RMS heading (°)")
     for j, (p, a) in enumerate(zip(result.position_mm, result.heading_deg, strict=True), 1):
         click.echo(f"  {j:>11}   {p:>17.4f}   {a:>15.3f}")
+
+
+def _resimulate(
+    ctx: click.Context,
+    recording: Path,
+    method: str | None,
+    overrides: tuple[str, ...],
+    label: str,
+    out: Path | None,
+    as_json: bool,
+    open_view: bool,
+) -> None:
+    from magrun.recorded import RecordingReadError
+    from magrun.replay import ReplayError
+    from magrun.resimulate import resimulate
+
+    if not _LABEL.fullmatch(label):
+        raise InputError(f"--label {label!r}: use letters, digits, '_', '-' and '.' only")
+    out = out or recording.with_name(f"{recording.stem}.{label}.mcap")
+    if out.suffix.lower() != ".mcap":
+        raise InputError(f"--out {out}: the output must be an .mcap file")
+    if not as_json:
+        click.echo(f"{recording.name}: re-simulating ...", err=True)
+    try:
+        result = resimulate(recording, method, overrides, out)
+    except (ReplayError, RecordingReadError) as exc:
+        raise InputError(str(exc)) from exc
+    summary = result.summary()
+    if as_json:
+        click.echo(json.dumps(summary))
+    else:
+        changed = ", ".join(
+            ([f"--method {result.method}"] if result.method != result.recorded_method else [])
+            + [f"--set {o}" for o in result.overrides]
+        )
+        rms, deg = result.recorded_rms
+        click.echo(f"  recorded ({result.recorded_method}): RMS {rms:.3f} mm, {deg:.2f}°")
+        click.echo(
+            f"  re-simulated ({changed or 'unchanged'}): RMS {summary['rms_position_mm']:.3f} mm, "
+            f"{summary['rms_orientation_deg']:.2f}° in {summary['wall_s']:.1f} s"
+        )
+        if result.identical is not None:
+            click.echo(
+                "  pose and current messages: "
+                + (
+                    "identical to the recording's"
+                    if result.identical
+                    else "DIFFER from the recording's"
+                )
+            )
+        for line in [*summary["warnings"], *result.notes]:
+            click.echo(f"  note: {line}")
+        click.echo(f"wrote {result.mcap} and {result.rrd}")
+    if open_view:
+        ctx.invoke(view, recording=result.rrd, save=None, web=False, port=9090)
