@@ -9,7 +9,8 @@ control code, so it works on recordings made on any rig::
     analysis.figures.draw_all(data, "figures")
 
 Modules: :mod:`~analysis.load` (MCAP → pandas), :mod:`~analysis.metrics`,
-:mod:`~analysis.stats`, :mod:`~analysis.figures`, :mod:`~analysis.report`.
+:mod:`~analysis.stats`, :mod:`~analysis.figures`, :mod:`~analysis.report`,
+:mod:`~analysis.replays` (``magrun replay``'s outputs beside the recordings).
 """
 
 from analysis import figures, metrics, report, stats

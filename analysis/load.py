@@ -324,9 +324,19 @@ def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]
     searched = [root] if not manifests else []
     for folder in searched:
         for p in sorted(folder.rglob("*.mcap")):
-            if p.resolve() not in listed:
+            if p.resolve() not in listed and not is_replay(p):
                 found.append((p, None))
     return found
+
+
+def is_replay(path: str | Path) -> bool:
+    """Whether ``path`` is an estimator replay's output (a ``replay`` metadata record): the
+    recording's channels again, read by :mod:`analysis.replays`, not a trial of its own."""
+    try:
+        with Path(path).open("rb") as fh:
+            return any(m.name == "replay" for m in make_reader(fh).iter_metadata())
+    except Exception:  # an unreadable file is the trials' loader's to report
+        return False
 
 
 def load(

@@ -265,8 +265,10 @@ def report_markdown(
     data: Dataset,
     figures: Mapping[str, list[Path]] | None = None,
     out_dir: Path | None = None,
+    replays: pd.DataFrame | None = None,
 ) -> str:
-    """The report: headline numbers, per-protocol summaries, statistics, problems, figures."""
+    """The report: headline numbers, per-protocol summaries, statistics, problems, figures,
+    and the estimator replays found beside the recordings (:mod:`analysis.replays`)."""
     comparisons = stats.compare_methods(data.samples) if not data.samples.empty else None
     lines = [
         "# magrun results",
@@ -354,9 +356,50 @@ def report_markdown(
             "",
         ]
         lines.append(_md_table(warned[["protocol", "method", "trial", "warnings", "path"]]))
+    if replays is not None and len(replays):
+        lines += _replay_section(replays, figures)
     if figures and "zernike" in figures:
         lines += ["## Zernike field model", "", "![zernike](zernike.png)", ""]
     return "\n".join(lines) + "\n"
+
+
+def _replay_section(replays: pd.DataFrame, figures: Mapping[str, list[Path]] | None) -> list[str]:
+    show = replays.assign(
+        change=100.0 * (replays["replayed_mm"] / replays["recorded_mm"] - 1.0)
+    )[["label", "protocol", "method", "trial", "settings", "recorded_mm", "replayed_mm",
+       "change", "recorded_deg", "replayed_deg"]]  # fmt: skip
+    by_label = replays.groupby("label", sort=False).agg(
+        replays=("label", "size"),
+        recorded_mm=("recorded_mm", "mean"),
+        replayed_mm=("replayed_mm", "mean"),
+    )
+    lines = [
+        "## Estimator replays",
+        "",
+        "`magrun replay` outputs beside the recordings: the trial's estimator run again on "
+        "the recorded measurements and currents with other settings. RMS estimation error "
+        "(estimate against the actual pose) of the recorded and of the replayed estimator, "
+        "over the same ticks; change: replayed against recorded position error, %.",
+        "",
+    ]
+    if figures and "replays" in figures:
+        lines += ["![replays](replays.png)", ""]
+    lines += [
+        _md_table(by_label.reset_index(), {"recorded_mm": ".3f", "replayed_mm": ".3f"}),
+        "",
+        _md_table(
+            show,
+            {
+                "recorded_mm": ".3f",
+                "replayed_mm": ".3f",
+                "change": "+.1f",
+                "recorded_deg": ".2f",
+                "replayed_deg": ".2f",
+            },
+        ),
+        "",
+    ]
+    return lines
 
 
 def _varying(df: pd.DataFrame) -> list[str]:

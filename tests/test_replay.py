@@ -414,3 +414,52 @@ def test_resimulation_refuses_what_it_cannot_rerun(
         assert result.exit_code == 2, (args, result.output)
         assert message in result.output
         assert "Traceback" not in result.output
+
+
+# --------------------------------------------------------------------------------------------
+# the analysis reads replays
+
+
+def test_the_analysis_finds_replays_and_recomputes_their_errors(
+    recorded: dict[str, Path], tmp_path: Path
+) -> None:
+    """A replay output beside the recordings: found by analysis.replays (and not taken for a
+    trial), its recorded and replayed RMS estimation errors recomputed from the MCAP's
+    streams equal to the replay's own (rtol 1e-9), and `magrun figures` adds its table,
+    figure and report section."""
+    import shutil
+
+    import analysis
+    from analysis.replays import find_replays, replay_table
+
+    folder = tmp_path / "run"
+    shutil.copytree(recorded["proposed"].parents[1], folder / "tiny")
+    source = folder / "tiny" / recorded["proposed"].parent.name / recorded["proposed"].name
+    rec, result = replay_estimator(
+        source, ("controller.kalman.measurement_sigma_mm=0.5",), label="half"
+    )
+    out = source.with_name("trial-0.half.mcap")
+    write_replay(rec, result, out)
+    assert find_replays(folder) == [out]
+    table = replay_table([out])
+    row = table.iloc[0]
+    e = result.errors
+    assert row["label"] == "half"
+    assert row["method"] == "proposed"
+    assert row["settings"] == "controller.kalman.measurement_sigma_mm=0.5"
+    assert row["recorded_mm"] == pytest.approx(e["rms_estimation_error_recorded_mm"], rel=1e-9)
+    assert row["replayed_mm"] == pytest.approx(e["rms_estimation_error_replayed_mm"], rel=1e-9)
+    assert row["replayed_deg"] == pytest.approx(e["rms_estimation_error_replayed_deg"], rel=1e-9)
+    # the trials are the run's, with or without a manifest to list them
+    assert len(analysis.load(folder).trials) == 2
+    (folder / "tiny" / "manifest.json").unlink()
+    assert len(analysis.load(folder).trials) == 2
+    figs = tmp_path / "figs"
+    res = CliRunner().invoke(cli, ["figures", str(folder), "--out", str(figs), "--no-zernike"])
+    assert res.exit_code == 0, res.output
+    assert (figs / "replays.png").stat().st_size > 0
+    csv = (figs / "replays.csv").read_text()
+    assert "half" in csv
+    report = (figs / "report.md").read_text()
+    assert "## Estimator replays" in report
+    assert "| half | tiny | proposed | 0 |" in report

@@ -248,11 +248,33 @@ def figures(
             z = dict(npz)
     written = analysis.figures.draw_all(data, out, zernike_data=z)
     results = analysis.write_results(data, out / "results.csv")
+    replays = _replays(recordings, out, written)
     report = out / "report.md"
-    report.write_text(report_markdown(data, written, out_dir=out))
+    report.write_text(report_markdown(data, written, out_dir=out, replays=replays))
     for name, paths in written.items():
         click.echo(f"{name:>18}: " + ", ".join(str(p) for p in paths))
+    if replays is not None:
+        click.echo(f"{'replays':>18}: {out / 'replays.csv'} ({len(replays)} replays)")
     click.echo(f"{'results':>18}: {results} ({len(data.trials)} trials)")
     click.echo(f"{'report':>18}: {report}")
     if data.problems:
         raise click.ClickException(f"{len(data.problems)} recording(s) could not be read")
+
+
+def _replays(recordings: Path, out: Path, written: dict[str, list[Path]]) -> Any:
+    """The estimator replays beside the recordings (analysis.replays): their table, written
+    as replays.csv with its figure; None where there are none."""
+    import analysis.figures
+    from analysis.replays import figure, find_replays, replay_table
+
+    paths = find_replays(recordings)
+    if not paths:
+        return None
+    try:
+        table = replay_table(paths)
+    except analysis.RecordingError as exc:
+        raise InputError(str(exc)) from exc
+    out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out / "replays.csv", index=False)
+    written["replays"] = analysis.figures.save(figure(table), out, "replays")
+    return table
