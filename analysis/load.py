@@ -140,9 +140,7 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
                 t = message.log_time
                 topic = channel.topic
                 if topic.startswith("/robot/pose/"):
-                    p, q = msg.pose.position, msg.pose.orientation
-                    yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-                    poses[topic.rsplit("/", 1)[1]].append((t, p.x, p.y, yaw))
+                    poses[topic.rsplit("/", 1)[1]].append((t, *planar_pose(msg)))
                 elif topic == "/coils/currents":
                     names = list(msg.names)
                     currents.append((t, list(msg.currents)))
@@ -199,6 +197,14 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
         currents=_with_seconds(cur),
         status=_with_seconds(st),
     )
+
+
+def planar_pose(msg: Any) -> tuple[float, float, float]:
+    """A ``foxglove.PoseInFrame`` message's planar pose: x, y (m) and the yaw (rad) of its
+    quaternion."""
+    p, q = msg.pose.position, msg.pose.orientation
+    yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    return p.x, p.y, yaw
 
 
 def _with_seconds(df: pd.DataFrame) -> pd.DataFrame:

@@ -17,7 +17,6 @@ no ``replay`` record and are read as trials.
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from matplotlib.figure import Figure
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from analysis.load import CONDITIONS, RecordingError, _decode_meta
+from analysis.load import CONDITIONS, RecordingError, _decode_meta, is_replay, planar_pose
 from analysis.metrics import rms, wrap_angle
 
 #: the table's columns, in order
@@ -46,19 +45,11 @@ def _metadata(path: Path) -> dict[str, dict[str, str]]:
 
 def find_replays(root: str | Path) -> list[Path]:
     """Every replay output under ``root`` (a file, or a folder searched recursively): the
-    MCAP files with a ``replay`` record of kind ``estimator``. Unreadable files are skipped
-    (the trials' loader reports those)."""
+    MCAP files with a ``replay`` record. Unreadable files are skipped (the trials' loader
+    reports those)."""
     root = Path(root)
     paths = [root] if root.is_file() else sorted(root.rglob("*.mcap"))
-    found = []
-    for p in paths:
-        try:
-            record = _metadata(p).get("replay")
-        except Exception:  # mcap raises several types for damaged files
-            continue
-        if record is not None and record.get("kind", "estimator") == "estimator":
-            found.append(p)
-    return found
+    return [p for p in paths if is_replay(p)]
 
 
 def _poses(path: Path, topics: list[str]) -> dict[str, pd.DataFrame]:
@@ -66,9 +57,7 @@ def _poses(path: Path, topics: list[str]) -> dict[str, pd.DataFrame]:
     with path.open("rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         for _s, channel, message, msg in reader.iter_decoded_messages(topics=topics):
-            p, q = msg.pose.position, msg.pose.orientation
-            yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-            rows[channel.topic].append((message.log_time, p.x, p.y, yaw))
+            rows[channel.topic].append((message.log_time, *planar_pose(msg)))
     return {
         t: pd.DataFrame(r, columns=["t_ns", "x", "y", "theta"]).set_index("t_ns")
         for t, r in rows.items()

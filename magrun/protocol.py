@@ -32,7 +32,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -149,9 +149,7 @@ class PhantomWorkspace(_Strict):
     def _load(cls, value: str, info: ValidationInfo) -> str:
         from magrun.phantom import load_phantom
 
-        path = _resolve(value, info)
-        load_phantom(path)  # its own errors name the phantom file and line
-        return str(path)
+        return _checked_file(value, info, load_phantom)
 
 
 class SCurve(_Strict):
@@ -261,13 +259,9 @@ class ControllerSettings(_Strict):
     @field_validator("coil_gains")
     @classmethod
     def _gains_file(cls, value: str | None, info: ValidationInfo) -> str | None:
-        if value is None:
-            return None
         from magrun.calibration import load_coil_gains
 
-        path = _resolve(value, info)
-        load_coil_gains(path)  # its own errors name the file and line
-        return str(path)
+        return None if value is None else _checked_file(value, info, load_coil_gains)
 
     @model_validator(mode="after")
     def _one_latency(self) -> ControllerSettings:
@@ -444,13 +438,9 @@ class Protocol(_Strict):
     @field_validator("robots_file")
     @classmethod
     def _robots_file(cls, value: str | None, info: ValidationInfo) -> str | None:
-        if value is None:
-            return None
         from magrun.robot import load_robots
 
-        path = _resolve(value, info)
-        load_robots(path)  # its own errors name the robots file and line
-        return str(path)
+        return None if value is None else _checked_file(value, info, load_robots)
 
     @field_validator("robot")
     @classmethod
@@ -646,6 +636,14 @@ def _resolve(value: str, info: ValidationInfo) -> Path:
     base = (info.context or {}).get("base_dir")
     path = Path(value)
     return path if path.is_absolute() or base is None else Path(base) / path
+
+
+def _checked_file(value: str, info: ValidationInfo, load: Callable[[Path], object]) -> str:
+    """A file setting resolved against the protocol's folder and loaded once, so that a
+    bad file fails validation (``load``'s own errors name the file and line)."""
+    path = _resolve(value, info)
+    load(path)
+    return str(path)
 
 
 def load_protocol(path: str | Path, overrides: Sequence[str] = ()) -> Protocol:
