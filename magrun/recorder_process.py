@@ -198,6 +198,7 @@ class ProcessRecorder(Recorder):
             self.stats.images = written.images
             self.stats.dropped_ticks += written.dropped_ticks
             self.stats.error = written.error
+            self.stats.live_view_error = written.live_view_error
         self.status = status if not self.stats.error else "failed"
         return self.stats
 

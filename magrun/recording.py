@@ -38,6 +38,7 @@ import platform
 import queue
 import sys
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -76,6 +77,10 @@ COMPRESSION = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
+#: with a live view, it gets the Rerun rows at least this often (s of wall time), the file
+#: every flush_s of trial time (a simulated trial runs faster than that: the viewer gets
+#: its rows in fewer, larger pieces, which a web viewer ingests more easily)
+LIVE_FLUSH_S = 0.25
 #: the interpreter's GIL switch interval while a recorder runs, s (see TrialRecorder.start)
 SWITCH_INTERVAL_S = 5e-4
 SOFTWARE = ("magrun", "numpy", "casadi", "torch", "rerun-sdk", "mcap", "protobuf")
@@ -182,6 +187,7 @@ class RecorderStats:
     dropped_ticks: int = 0
     images: int = 0
     error: str = ""
+    live_view_error: str = ""  # why the live view stopped, if it did (the files are whole)
 
 
 _STOP = object()
@@ -307,6 +313,7 @@ class TrialRecorder(Recorder):
         finally:
             pin_thread(before)
         self._last_flush = 0
+        self._last_live_flush = time.monotonic()
         # The writer thread's Python work holds the GIL in slices of the switch interval
         # (5 ms by default): a control tick waiting for it would be late by up to that much.
         # 0.5 ms bounds the wait (magrun bench recorder measures what logging adds).
@@ -341,6 +348,7 @@ class TrialRecorder(Recorder):
         self._mcap.finish()
         self._mcap_file.close()
         self._rerun.close()
+        self.stats.live_view_error = self._rerun.live_error
         return self.stats
 
     # ---- writer thread -----------------------------------------------------------------
@@ -433,11 +441,18 @@ class TrialRecorder(Recorder):
         _stamp(st, t_ns)
         self._put("/controller/status", st, t_ns)
         image = (jpeg if jpeg is not None else frame) if rerun_image else None
-        self._rerun.tick(tick.t, poses, tick.currents, tick.compute_time, image)
+        self._rerun.tick(
+            tick.t, poses, tick.currents, tick.compute_time, image,
+            frame=frame if rerun_image else None,
+        )  # fmt: skip
         if t_ns - self._last_flush >= self._flush_ns:
             self._mcap.flush()  # close the chunk: a crash loses at most flush_s of trial time
             self._rerun.flush()
             self._last_flush = t_ns
+            self._last_live_flush = time.monotonic()
+        elif self.setup.live_view and time.monotonic() - self._last_live_flush >= LIVE_FLUSH_S:
+            self._rerun.flush(live_only=True)  # a live viewer follows the trial closely
+            self._last_live_flush = time.monotonic()
 
 
 def encode_jpeg(frame: NDArray[np.uint8], quality: int) -> bytes:

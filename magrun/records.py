@@ -110,3 +110,4 @@ class RecordingSetup:
     rerun_image_every: int = 1  # of the recorded frames, every n-th also into the .rrd
     compression: str = "zstd"  # MCAP chunk compression: zstd, lz4 or none
     extra_metadata: dict[str, dict[str, str]] = field(default_factory=dict)  # more records
+    live_view: str = ""  # a Rerun viewer's gRPC URL to stream to as well ("": none)

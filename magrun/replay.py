@@ -203,10 +203,13 @@ def replay_topic(label: str, stream: str) -> str:
     return f"/replay/{label}/robot/pose/{stream}"
 
 
-def write_replay(rec: RecordedTrial, result: EstimatorReplay, out: str | Path) -> Path:
+def write_replay(
+    rec: RecordedTrial, result: EstimatorReplay, out: str | Path, view: str = ""
+) -> Path:
     """Copy ``rec``'s file to ``out`` (.mcap) with the replayed streams and a ``replay``
     metadata record added, written to a temporary name and renamed when complete; then its
-    ``.rrd`` beside it. Returns the ``.rrd``'s path."""
+    ``.rrd`` beside it, streamed to the Rerun viewer at the gRPC URL ``view`` as well if one
+    is given. Returns the ``.rrd``'s path."""
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
     from mcap_protobuf.schema import register_schema
@@ -271,5 +274,5 @@ def write_replay(rec: RecordedTrial, result: EstimatorReplay, out: str | Path) -
         writer.finish()
     tmp.replace(out)
     rrd = out.with_suffix(".rrd")
-    rrd_from_mcap(out, rrd)
+    rrd_from_mcap(out, rrd, live_view=view)
     return rrd

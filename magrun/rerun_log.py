@@ -18,6 +18,11 @@ What the viewer shows (:func:`blueprint`):
   error (°), compute time (ms).
 
 The timeline is ``t``, trial time from the start of the trial (a duration, not a date).
+
+A live view (``RecordingSetup.live_view``, a viewer's gRPC URL: ``magrun run --view``) gets
+the same entities on a stream of its own, so that the file is written exactly as without it
+and whatever becomes of the viewer: its rows as often as the recorder asks
+(:meth:`RerunLog.flush` with ``live_only``), camera frames as pixels.
 """
 
 from __future__ import annotations
@@ -82,6 +87,8 @@ SQUARE_COLOR = (150, 150, 150)
 #: the phantom's walls, and the critical one (the spinal cord's side), in the workspace view
 BOUNDARY_COLOR = (150, 80, 200)
 CRITICAL_COLOR = (225, 95, 20)
+#: how long closing a trial waits for a live viewer to take what it has not had, s
+LIVE_FLUSH_TIMEOUT_S = 5.0
 #: sizes on screen, whatever the zoom: Rerun reads a negative radius as UI points
 POINT_RADIUS = -3.5
 LINE_RADIUS = -0.75
@@ -159,15 +166,23 @@ class RerunLog:
             color = REPLAY_COLORS[i % len(REPLAY_COLORS)]
             self._colors[f"replay/{label}/estimated"] = color
             self._colors[f"replay/{label}/predicted"] = _lighter(color)
-        self._rec = rec = rr.RecordingStream(
+        layout = blueprint(self.camera is not None, setup.workspace_half_width, bool(replays))
+        self._rec = rr.RecordingStream(
             "magrun", recording_id=setup.recording_id or None, send_properties=False
         )
-        rec.save(
-            str(path),
-            default_blueprint=blueprint(
-                self.camera is not None, setup.workspace_half_width, bool(replays)
-            ),
-        )
+        self._rec.save(str(path), default_blueprint=layout)
+        self._streams = [self._rec]
+        #: why the live view stopped, if it did ("" while it streams or when there is none)
+        self.live_error = ""
+        self._live: Any = None
+        if setup.live_view:
+            self._live = _live_stream(setup, layout)
+            if self._live is None:
+                self.live_error = _live_lost(setup.live_view, "no viewer listening")
+            else:
+                self._streams.append(self._live)
+        self._log_all = _Fanout(self._streams)
+        rec = self._log_all
         rec.send_recording_name(setup.name or recording_name(setup.trial))
         rec.log(
             "/trial",
@@ -258,6 +273,7 @@ class RerunLog:
             name: [] for name in (*PATHS, *(f"replay/{r}/estimated" for r in replays))
         }
         self._rows: dict[str, tuple[list[float], list[Any]]] = {}
+        self._live_sent: dict[str, int] = {}  # of each entity's buffered rows, sent live
 
     def tick(
         self,
@@ -266,10 +282,15 @@ class RerunLog:
         currents: FloatArray,
         compute_time: float,
         image: bytes | NDArray[np.uint8] | None = None,
+        frame: NDArray[np.uint8] | None = None,
     ) -> None:
         """Buffer one tick's rows: ``poses`` by stream (x, y, θ; None where absent), the
         currents (A), the compute time (s) and an image (JPEG bytes, buffered; or a raw
-        frame, sent at once)."""
+        frame, sent at once).
+
+        A live view gets the image as pixels, at once: ``frame``, the JPEG's own frame
+        where the caller has it, else the JPEG decoded. (Rerun's web viewer draws JPEG
+        images only once a recording has stopped arriving; pixels it draws as they come.)"""
         import rerun as rr
 
         if isinstance(image, bytes):
@@ -277,6 +298,13 @@ class RerunLog:
         elif image is not None:
             self._rec.set_time("t", duration=t)
             self._rec.log("/camera/image", rr.Image(image))
+        if self._live is not None and image is not None:
+            if not isinstance(image, bytes):
+                pixels = image
+            else:
+                pixels = frame if frame is not None else _decode_jpeg(image)
+            self._live.set_time("t", duration=t)
+            self._live.log("/camera/image", rr.Image(pixels))
         cam = self.camera
         for name in self._colors:
             pose = poses.get(name)
@@ -312,27 +340,24 @@ class RerunLog:
         times.append(t)
         values.append(value)
 
-    def flush(self) -> None:
-        """Send the buffered rows as columns: points for positions, scalars for series."""
-        import rerun as rr
+    def flush(self, live_only: bool = False) -> None:
+        """Send the buffered rows as columns: points for positions, scalars for series.
 
+        With ``live_only`` they go to the live view only and stay buffered for the file, so
+        a viewer can follow a trial closely while the file's chunks stay as without one."""
+        live = self._live
         for entity, (times, values) in self._rows.items():
-            if not times:
+            sent = self._live_sent.get(entity, 0)
+            if live is not None and len(times) > sent and entity != "/camera/image":
+                live.send_columns(entity, **_columns(entity, times[sent:], values[sent:]))
+            if live_only:
+                self._live_sent[entity] = len(times)
                 continue
-            index = [rr.TimeColumn("t", duration=np.asarray(times))]
-            if entity == "/camera/image":
-                columns = rr.EncodedImage.columns(
-                    blob=values, media_type=["image/jpeg"] * len(values)
-                )
-            else:
-                data = np.asarray(values, dtype=np.float64)
-                if entity.startswith(("/workspace/", "/camera/")):
-                    columns = rr.Points2D.columns(positions=data.reshape(-1, 2))
-                else:
-                    columns = rr.Scalars.columns(scalars=data.reshape(len(times), -1))
-            self._rec.send_columns(entity, indexes=index, columns=columns)
+            if times:
+                self._rec.send_columns(entity, **_columns(entity, times, values))
             times.clear()
             values.clear()
+            self._live_sent[entity] = 0
 
     def finish_paths(self) -> None:
         """Send what is buffered and the whole actual and predicted paths (static: drawn
@@ -346,22 +371,120 @@ class RerunLog:
                 continue
             line = np.stack(points)
             color = self._colors[name]
-            self._rec.log(
+            self._log_all.log(
                 f"/workspace/paths/{name}",
                 rr.LineStrips2D([line], colors=[color], radii=[LINE_RADIUS]),
                 static=True,
             )
             if cam is not None:
-                self._rec.log(
+                self._log_all.log(
                     f"/camera/paths/{name}",
                     rr.LineStrips2D([cam.to_pixel(line)], colors=[color], radii=[LINE_RADIUS]),
                     static=True,
                 )
 
     def close(self, timeout_s: float = 60.0) -> None:
-        """Finish the file (what :meth:`finish_paths` has not sent is lost)."""
+        """Finish the file (what :meth:`finish_paths` has not sent is lost), and hand the
+        live view what it has not had yet (a viewer gone away costs the file nothing)."""
         self._rec.flush(timeout_sec=timeout_s)
         self._rec.disconnect()
+        if self._live is not None:
+            try:
+                self._live.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+            except Exception as exc:  # the viewer closed, the network went: the file is whole
+                self.live_error = _live_lost(self.setup.live_view, str(exc))
+            finally:
+                self._live.disconnect()
+
+
+class _Fanout:
+    """The same call on every stream: the file's, and the live view's when there is one.
+
+    Two streams rather than one with two sinks, so that the file is written exactly as
+    without a viewer, whatever becomes of the viewer."""
+
+    def __init__(self, streams: list[Any]) -> None:
+        self._streams = streams
+
+    def __getattr__(self, name: str) -> Any:
+        methods = [getattr(s, name) for s in self._streams]
+
+        def call(*args: Any, **kwargs: Any) -> None:
+            for method in methods:
+                method(*args, **kwargs)
+
+        return call
+
+
+def _live_stream(setup: RecordingSetup, layout: Any) -> Any:
+    """A recording stream to the viewer at ``setup.live_view`` (a gRPC URL), or None where
+    nothing listens there (a viewer closed during an earlier trial: no stream is opened
+    that would wait on it)."""
+    import rerun as rr
+
+    if not viewer_listening(setup.live_view):
+        return None
+    live = rr.RecordingStream(
+        "magrun", recording_id=setup.recording_id or None, send_properties=False
+    )
+    live.set_sinks(rr.GrpcSink(setup.live_view), default_blueprint=layout)
+    return live
+
+
+def viewer_listening(url: str, timeout_s: float = 1.0) -> bool:
+    """Whether something accepts connections at the host and port of the gRPC ``url``
+    (``rerun+http://HOST:PORT/proxy``)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    try:
+        with socket.create_connection((parts.hostname or "127.0.0.1", parts.port or 9876),
+                                      timeout=timeout_s):  # fmt: skip
+            return True
+    except OSError:
+        return False
+
+
+_warned: set[str] = set()
+
+
+def _live_lost(url: str, why: str) -> str:
+    """Say once per process on stderr that the live view at ``url`` stopped; the text."""
+    import sys
+
+    text = f"live view at {url} stopped ({why}); the recordings are written as usual"
+    if url not in _warned:
+        _warned.add(url)
+        print(f"magrun: {text}", file=sys.stderr, flush=True)
+    return text
+
+
+def _decode_jpeg(data: bytes) -> NDArray[np.uint8]:
+    """A JPEG's pixels: (H, W, 3) RGB or (H, W) mono."""
+    import cv2
+
+    pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise ValueError("an image that is not a JPEG")
+    rgb = cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB) if pixels.ndim == 3 else pixels
+    return np.asarray(rgb, dtype=np.uint8)
+
+
+def _columns(entity: str, times: list[float], values: list[Any]) -> dict[str, Any]:
+    """``send_columns``'s arguments for one entity's rows."""
+    import rerun as rr
+
+    index = [rr.TimeColumn("t", duration=np.asarray(times))]
+    if entity == "/camera/image":
+        columns = rr.EncodedImage.columns(blob=values, media_type=["image/jpeg"] * len(values))
+    else:
+        data = np.asarray(values, dtype=np.float64)
+        if entity.startswith(("/workspace/", "/camera/")):
+            columns = rr.Points2D.columns(positions=data.reshape(-1, 2))
+        else:
+            columns = rr.Scalars.columns(scalars=data.reshape(len(times), -1))
+    return {"indexes": index, "columns": columns}
 
 
 def _lighter(color: tuple[int, int, int]) -> tuple[int, int, int]:
@@ -401,9 +524,10 @@ def view_metadata(setup: RecordingSetup) -> dict[str, str]:
     }
 
 
-def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
+def rrd_from_mcap(mcap: str | Path, rrd: str | Path, live_view: str = "") -> int:
     """Write ``rrd`` from a magrun MCAP recording, with the recorder's entities and
-    blueprint; returns the number of ticks written.
+    blueprint, and stream it to the viewer at the gRPC URL ``live_view`` too if one is
+    given; returns the number of ticks written.
 
     Every pose, current and status message and every recorded image goes in. Recordings
     made before the ``view`` metadata record existed get a name from the ``trial`` record
@@ -455,6 +579,7 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path) -> int:
             camera=_camera(metadata_value(view.get("camera", "null"))),
             recording_id=view.get("recording_id") or f"{mcap.stem}@{mcap.parent.name}",
             name=view.get("name") or recording_name(trial),
+            live_view=live_view,
         )
         summary = reader.get_summary()
         replay_topics = sorted(

@@ -86,9 +86,11 @@ def resimulate(
     method: str | None = None,
     overrides: tuple[str, ...] = (),
     out: str | Path | None = None,
+    view: str = "",
 ) -> Resimulation:
     """Run ``recording``'s simulated trial again (module doc) and record it to ``out``
-    (default: beside the recording, ``<name>.resim.mcap``) with its ``.rrd`` beside it.
+    (default: beside the recording, ``<name>.resim.mcap``) with its ``.rrd`` beside it;
+    ``view``, a Rerun viewer's gRPC URL, gets it live as well.
 
     Raises
     ------
@@ -130,7 +132,7 @@ def resimulate(
         )
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".{out.stem}.", dir=out.parent) as tmp:
-        entry = execute_trial(trial, tmp)
+        entry = execute_trial(trial, tmp, view=view)
         if entry.get("status") != "ok":
             raise ReplayError(
                 f"{source}: the re-simulated trial ended {entry.get('status')}: "

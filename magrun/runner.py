@@ -89,9 +89,16 @@ def plant_record(rig: Any) -> dict[str, str]:
 
 
 def execute_trial(
-    trial: Trial, out: str | Path, rig: RigSpec = "sim", progress: ProgressFn | None = None
+    trial: Trial,
+    out: str | Path,
+    rig: RigSpec = "sim",
+    progress: ProgressFn | None = None,
+    view: str = "",
 ) -> dict[str, Any]:
-    """Run and record one trial under ``out``; returns its manifest entry (never raises)."""
+    """Run and record one trial under ``out``; returns its manifest entry (never raises).
+
+    ``view``: a Rerun viewer's gRPC URL (``rerun+http://HOST:PORT/proxy``) that the trial
+    is also streamed to while it runs ("": none)."""
     from magrun.health import trial_health
     from magrun.recorder_process import ProcessRecorder
     from magrun.recording import RecordingSetup, TrialRecorder, software_versions
@@ -139,6 +146,7 @@ def execute_trial(
             recording_id=f"{trial.relpath}@{trial.seed}",
             name=f"{trial.relpath} (seed {trial.seed})",
             extra_metadata={"plant": plant_record(the_rig)} if sim else {},
+            live_view=view,
         )
         writer = protocol.recording.writer
         cam = the_rig.camera
@@ -288,8 +296,8 @@ def _pool_progress(q: Any) -> ProgressFn:
     return send
 
 
-def _run_in_worker(trial: Trial, out: str, rig: RigSpec, q: Any) -> dict[str, Any]:
-    return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None)
+def _run_in_worker(trial: Trial, out: str, rig: RigSpec, q: Any, view: str = "") -> dict[str, Any]:
+    return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None, view)
 
 
 def _result_or_failure(get: Callable[[], dict[str, Any]], trial: Trial) -> dict[str, Any]:
@@ -300,8 +308,9 @@ def _result_or_failure(get: Callable[[], dict[str, Any]], trial: Trial) -> dict[
         return {**manifest_entry(trial), "status": "failed", "error": f"worker died: {exc!r}"}
 
 
-def local_executor(jobs: int = 1) -> Executor:
-    """Run trials in this process (``jobs`` = 1) or a pool of ``jobs`` processes."""
+def local_executor(jobs: int = 1, view: str = "") -> Executor:
+    """Run trials in this process (``jobs`` = 1) or a pool of ``jobs`` processes; each
+    streamed live to the Rerun viewer at the gRPC URL ``view`` too, if one is given."""
 
     def run(
         trials: list[Trial], out: Path, rig: RigSpec, progress: ProgressFn | None
@@ -310,13 +319,15 @@ def local_executor(jobs: int = 1) -> Executor:
             for trial in trials:
                 if interrupt.requested() is not None:
                     return  # the rest stay pending (magrun run --resume)
-                yield execute_trial(trial, out, rig, progress)
+                yield execute_trial(trial, out, rig, progress, view)
             return
         ctx = multiprocessing.get_context("spawn")  # no forked torch / casadi state
         with _one_thread_per_worker(), ctx.Manager() as manager:
             q = manager.Queue() if progress is not None else None
             with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
-                futures = {pool.submit(_run_in_worker, t, str(out), rig, q): t for t in trials}
+                futures = {
+                    pool.submit(_run_in_worker, t, str(out), rig, q, view): t for t in trials
+                }
                 pending = set(futures)
                 forwarded = False
                 while pending:
@@ -376,8 +387,11 @@ def _signal_workers(pool: cf.ProcessPoolExecutor, signum: int | None) -> None:
             os.kill(proc.pid, signum or signal.SIGTERM)
 
 
-def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Executor:
-    """Run trials as Ray tasks (``pip install magrun[ray]``), one CPU each.
+def ray_executor(
+    address: str | None = None, num_cpus: int | None = None, view: str = ""
+) -> Executor:
+    """Run trials as Ray tasks (``pip install magrun[ray]``), one CPU each; ``view`` as for
+    :func:`local_executor` (each node must reach it).
 
     ``address`` is a running cluster's (``ray://host:10001`` or ``auto``); ``None`` starts a
     local Ray instance with ``num_cpus`` CPUs. The output folder must be shared storage that
@@ -399,7 +413,7 @@ def ray_executor(address: str | None = None, num_cpus: int | None = None) -> Exe
         try:
             one_thread = {k: os.environ.get(k, "1") for k in THREAD_ENV}
             task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_in_worker)
-            refs = {task.remote(t, str(out.resolve()), rig, None): t for t in trials}
+            refs = {task.remote(t, str(out.resolve()), rig, None, view): t for t in trials}
             pending = list(refs)
             while pending:
                 ready, pending = ray.wait(pending, num_returns=1)
@@ -434,6 +448,7 @@ def run_protocol(
     on_trial: Callable[[dict[str, Any]], None] | None = None,
     progress: ProgressFn | None = None,
     resume: bool = False,
+    view: str = "",
 ) -> dict[str, Any]:
     """Run every trial of ``protocol``; returns the manifest (also written to disk).
 
@@ -442,7 +457,8 @@ def run_protocol(
     ``resume`` continues the run recorded there instead (same protocol, seed and --quick):
     trials whose status is ``ok`` and whose MCAP exists are kept, the others run again.
     A stop signal (:mod:`magrun.interrupt`) ends the running trials cleanly, starts no new
-    one and records the signal under ``interrupted`` in the manifest.
+    one and records the signal under ``interrupted`` in the manifest. ``view`` streams each
+    trial to a Rerun viewer as well (:func:`local_executor`; an ``executor`` has its own).
     """
     if isinstance(rig, HardwareSpec):
         if jobs != 1 or executor is not None:
@@ -497,7 +513,7 @@ def run_protocol(
         kept = {e["path"] for e in manifest["trials"] if e.get("status") in COMPLETE}
         trials = [t for t in trials if manifest_entry(t)["path"] not in kept]
     write_manifest(path, manifest)
-    run = executor or local_executor(jobs)
+    run = executor or local_executor(jobs, view)
     for entry in run(trials, out, rig, progress):
         entry = _finite(entry)  # NaN (no prediction: the PID) is null, in memory as on disk
         manifest["trials"][index[entry["path"]]] = entry

@@ -1,9 +1,13 @@
 """Screenshot a recording in Rerun's web viewer, as a user sees it, without a display.
 
     python tools/viewer_screenshot.py RECORDING OUT.png [--wait 25] [--size 1600x1000]
+    python tools/viewer_screenshot.py PROTOCOL.yaml OUT.png --wait 20 [--shots 3]
 
 Serves RECORDING (.rrd or .mcap) with ``magrun view --web``, opens it in headless Chromium
-with a software renderer (SwiftShader: no GPU needed) and saves the page as a PNG. What it
+with a software renderer (SwiftShader: no GPU needed) and saves the page as a PNG. Given a
+protocol instead, runs ``magrun run PROTOCOL --quick --web`` into a temporary folder and
+screenshots the live view while it runs: ``--shots N`` saves N pictures ``--wait`` s apart
+(OUT-1.png, OUT-2.png, …). What it
 needs besides magrun: Chromium (Debian: ``apt-get install chromium``, at /usr/bin/chromium,
 or ``--chromium PATH``) and Playwright's Python package (``pip install -e ".[viewshot]"``;
 its own browser download is not used). Check the views by eye with it after changing what
@@ -19,6 +23,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -42,6 +47,7 @@ def main() -> int:
     parser.add_argument("--wait", type=float, default=25.0, help="seconds to let it render")
     parser.add_argument("--size", default="1600x1000", help="viewport, px (WxH)")
     parser.add_argument("--chromium", default="/usr/bin/chromium")
+    parser.add_argument("--shots", type=int, default=1, help="with a protocol: pictures taken")
     args = parser.parse_args()
     try:
         from playwright.sync_api import sync_playwright
@@ -51,9 +57,14 @@ def main() -> int:
         sys.exit(f"no Chromium at {args.chromium} (Debian: apt-get install chromium)")
     width, height = (int(v) for v in args.size.split("x"))
     port = _free_port()
+    live = args.recording.suffix.lower() in (".yaml", ".yml")
+    tmp = tempfile.TemporaryDirectory(prefix="viewshot-")
+    command = (
+        ["run", str(args.recording), "--quick", "--out", tmp.name] if live
+        else ["view", str(args.recording)]
+    )  # fmt: skip
     viewer = subprocess.Popen(
-        [sys.executable, "-m", "magrun.cli", "view", str(args.recording), "--web",
-         "--port", str(port)],
+        [sys.executable, "-m", "magrun.cli", *command, "--web", "--web-port", str(port)],
         stderr=subprocess.PIPE, text=True, start_new_session=True,
     )  # fmt: skip
     try:
@@ -71,13 +82,17 @@ def main() -> int:
             browser = pw.chromium.launch(executable_path=args.chromium, args=CHROMIUM_FLAGS)
             page = browser.new_page(viewport={"width": width, "height": height})
             page.goto(url)
-            time.sleep(args.wait)
-            page.screenshot(path=str(args.out))
+            shots = max(args.shots, 1) if live else 1
+            for i in range(1, shots + 1):
+                time.sleep(args.wait)
+                out = args.out if shots == 1 else args.out.with_stem(f"{args.out.stem}-{i}")
+                page.screenshot(path=str(out))
+                print(f"wrote {out}")
             browser.close()
     finally:
-        os.killpg(viewer.pid, signal.SIGINT)
+        os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(timeout=60)
-    print(f"wrote {args.out}")
+        tmp.cleanup()
     return 0
 
 

@@ -12,6 +12,7 @@ import click
 import numpy as np
 
 from magrun.cli.common import SET_HELP, InputError, load_protocols
+from magrun.cli.viewer import LiveView, live_view, live_view_options
 
 
 @click.command("validate")
@@ -175,6 +176,7 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
     "--resume", is_flag=True,
     help="Continue the run in OUT/<protocol>/: trials already ok are kept, the rest run.",
 )  # fmt: skip
+@live_view_options
 def run(
     protocol_file: Path,
     out: Path,
@@ -189,6 +191,10 @@ def run(
     ray_address: str | None,
     overwrite: bool,
     resume: bool,
+    open_view: bool,
+    connect: str | None,
+    web: bool,
+    web_port: int,
 ) -> None:
     """Run every trial of a protocol and record each to MCAP and Rerun.
 
@@ -198,16 +204,12 @@ def run(
     holds its error; the other trials' recordings are complete). SIGINT (Ctrl-C) or SIGTERM
     ends the running trials cleanly (zero currents, recordings finished and indexed, marked
     "interrupted" in the manifest) and exits with 130 / 143; --resume runs the rest.
+
+    With --view, --connect or --web each trial is also streamed to a Rerun viewer while it
+    runs, one recording per trial, with the same views as its .rrd. The recordings are
+    written the same with or without a viewer, and whatever becomes of it.
     """
-    from magrun import interrupt
-    from magrun.runner import (
-        HardwareSpec,
-        RigSpec,
-        RunError,
-        local_executor,
-        ray_executor,
-        run_protocol,
-    )
+    from magrun.runner import HardwareSpec, RigSpec
 
     if resume and overwrite:
         raise InputError("--resume and --overwrite exclude each other")
@@ -216,8 +218,38 @@ def run(
     (protocol,) = load_protocols((protocol_file,), overrides)
     the_rig: RigSpec = HardwareSpec(driver, camera_source) if driver is not None else rig
     n = len(protocol.expand(quick=quick, seed=seed))
+    with live_view(open_view, connect, web, web_port, f"magrun run {protocol_file} --web") as lv:
+        _run(
+            protocol, protocol_file, out, quick, seed, jobs, the_rig, executor, ray_address,
+            overwrite, resume, n, lv,
+        )  # fmt: skip
+
+
+def _run(
+    protocol: Any,
+    protocol_file: Path,
+    out: Path,
+    quick: bool,
+    seed: int | None,
+    jobs: int,
+    the_rig: Any,
+    executor: str,
+    ray_address: str | None,
+    overwrite: bool,
+    resume: bool,
+    n: int,
+    view: LiveView | None,
+) -> None:
+    from magrun import interrupt
+    from magrun.runner import RunError, local_executor, ray_executor, run_protocol
+
+    url = view.url if view is not None else ""
     try:
-        chosen = ray_executor(ray_address, jobs) if executor == "ray" else local_executor(jobs)
+        chosen = (
+            ray_executor(ray_address, jobs, view=url)
+            if executor == "ray"
+            else local_executor(jobs, view=url)
+        )
     except RunError as exc:
         raise InputError(str(exc)) from exc
     progress = _RunProgress(protocol.name, n)
@@ -229,7 +261,7 @@ def run(
                 protocol, out, quick=quick, seed=seed, jobs=jobs, rig=the_rig,
                 executor=None if executor == "local" else chosen,
                 overwrite=overwrite, protocol_file=str(protocol_file),
-                on_trial=progress.trial_done, progress=progress.tick, resume=resume,
+                on_trial=progress.trial_done, progress=progress.tick, resume=resume, view=url,
             )  # fmt: skip
     except RunError as exc:
         raise InputError(str(exc)) from exc
@@ -254,6 +286,8 @@ def run(
             err=True,
         )
     stopped = interrupt.requested()
+    if view is not None and stopped is None:
+        view.linger()  # --web: the browser may still be looking
     if stopped is not None:
         left = sum(e["status"] != "ok" for e in manifest["trials"])
         click.echo(

@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +10,7 @@ import click
 import numpy as np
 
 from magrun.cli.common import InputError
+from magrun.cli.viewer import WEB_PORT, check_display, open_file
 
 
 @click.command("view")
@@ -27,7 +25,8 @@ from magrun.cli.common import InputError
     "workstation, a remote server: forward the port over ssh); Ctrl-C stops it.",
 )  # fmt: skip
 @click.option(
-    "--port", type=click.IntRange(1, 65535), default=9090, show_default=True,
+    "--port", "--web-port", "port", type=click.IntRange(1, 65535), default=WEB_PORT,
+    show_default=True,
     help="With --web: the web viewer's HTTP port.",
 )  # fmt: skip
 def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
@@ -45,9 +44,8 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
         raise InputError(f"{recording}: not a recording (.rrd or .mcap)")
     if suffix == ".mcap":
         _check_mcap(recording)
-    rerun = _rerun_executable()
     if save is None and not web:
-        _check_display(recording)
+        check_display(f"magrun view {recording} --web")
     if suffix == ".mcap" and save is None:
         import tempfile
 
@@ -55,7 +53,7 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
             rrd = Path(tmp) / (recording.stem + ".rrd")
             click.echo(f"converting {recording} to Rerun's format ...", err=True)
             _mcap_to_rrd(recording, rrd)
-            _open(rrd, rerun, web, port, shown=recording)
+            open_file(rrd, web, port, shown=recording)
         return
     if save is not None:
         if save.suffix.lower() != ".rrd":
@@ -66,63 +64,7 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
             _mcap_to_rrd(recording, save)
         click.echo(f"wrote {save}")
         return
-    _open(recording, rerun, web, port, shown=recording)
-
-
-def _open(rrd: Path, rerun: str, web: bool, port: int, shown: Path) -> None:
-    """Run the viewer on ``rrd`` (``shown`` is what the user named) until it is closed."""
-    import subprocess
-
-    env = {**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")}
-    if web:
-        grpc = _free_port()
-        url = f"http://127.0.0.1:{port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
-        click.echo(f"serving {shown} at {url} (Ctrl-C stops)", err=True)
-        args = [rerun, str(rrd), "--web-viewer", "--web-viewer-port", str(port),
-                "--bind", "127.0.0.1", "--port", str(grpc)]  # fmt: skip
-        env["BROWSER"] = "true"  # print the address; open no browser
-    else:
-        args = [rerun, str(rrd), "--bind", "127.0.0.1"]
-
-    def stop(signum: int, frame: Any) -> None:
-        raise KeyboardInterrupt  # SIGTERM as Ctrl-C: stop the viewer, clean up, exit
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    viewer = subprocess.Popen(args, env=env)
-    try:
-        code = viewer.wait()
-    except KeyboardInterrupt:
-        viewer.terminate()  # the viewer may have had the Ctrl-C too, or not (SIGTERM, kill)
-        try:
-            viewer.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            viewer.kill()
-            viewer.wait()
-        code = 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    if code:
-        sys.exit(code)
-
-
-def _check_display(shown: Path) -> None:
-    """An InputError pointing to --web where a window cannot open (Linux without a display)."""
-    if sys.platform.startswith("linux") and not (
-        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-    ):
-        raise InputError(
-            "no display to open the viewer on (neither DISPLAY nor WAYLAND_DISPLAY is set); "
-            f"serve it to a browser instead: magrun view {shown} --web"
-        )
-
-
-def _free_port() -> int:
-    """A TCP port free on 127.0.0.1 now."""
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    open_file(recording, web, port, shown=recording)
 
 
 def _check_mcap(path: Path) -> None:
@@ -141,12 +83,6 @@ def _check_mcap(path: Path) -> None:
         raise InputError(f"{path}: cannot be read: {RECOVER_HINT} ({exc})") from exc
     if summary is None:
         raise InputError(f"{path}: no summary or index: {RECOVER_HINT}")
-
-
-def _rerun_executable() -> str:
-    import shutil
-
-    return shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
 
 
 def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:

@@ -5,11 +5,12 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import Any
 
 import click
 
 from magrun.cli.common import SET_HELP, InputError
-from magrun.cli.recordings import view
+from magrun.cli.viewer import LiveView, live_view, live_view_options
 from magrun.control import METHODS
 
 _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
@@ -52,10 +53,8 @@ _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
     help="With --model: predict 1 … K ticks ahead.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON object.")
-@click.option("--view", "open_view", is_flag=True, help="Open the result in the Rerun viewer.")
-@click.pass_context
+@live_view_options
 def replay(
-    ctx: click.Context,
     recording: Path,
     overrides: tuple[str, ...],
     estimator: str | None,
@@ -67,6 +66,9 @@ def replay(
     horizon: int,
     as_json: bool,
     open_view: bool,
+    connect: str | None,
+    web: bool,
+    web_port: int,
 ) -> None:
     """Re-run a recorded trial's estimator offline, with changed settings.
 
@@ -88,6 +90,9 @@ def replay(
     the recording's pose and current messages byte for byte, and says whether it did; with
     --method or --set the new controller meets the same plant, lighting and noise, a paired
     comparison. Prints both trials' RMS tracking errors.
+
+    --view, --connect and --web show the output in a Rerun viewer as it is written (a
+    re-simulation as it runs).
     """
     from magrun.recorded import RecordingReadError
     from magrun.replay import ReplayError, replay_estimator, write_replay
@@ -101,13 +106,15 @@ def replay(
             raise InputError(
                 "--resimulate runs the whole trial: it takes no --model or --estimator"
             )
-        _resimulate(ctx, recording, method, overrides, label or "resim", out, as_json, open_view)
+        with live_view(open_view, connect, web, web_port, f"{_again(recording)} --web") as lv:
+            _resimulate(recording, method, overrides, label or "resim", out, as_json, lv)
         return
     label = label or "replay"
     if model is not None:
-        if estimator or out or open_view or label != "replay":
+        if estimator or out or open_view or connect or web or label != "replay":
             raise InputError(
-                "--model writes nothing: it takes no --estimator, --label, --out, --view"
+                "--model writes nothing: it takes no --estimator, --label, --out, --view, "
+                "--connect or --web"
             )
         _model_replay(recording, model, horizon, overrides, as_json)
         return
@@ -118,9 +125,32 @@ def replay(
         raise InputError(f"--out {out}: the output must be an .mcap file")
     try:
         rec, result = replay_estimator(recording, overrides, estimator, label)
-        rrd = write_replay(rec, result, out)
     except (ReplayError, RecordingReadError) as exc:
         raise InputError(str(exc)) from exc
+    with live_view(open_view, connect, web, web_port, f"{_again(recording)} --web") as lv:
+        try:  # the viewer gets the output as it is written
+            rrd = write_replay(rec, result, out, view=lv.url if lv is not None else "")
+        except ReplayError as exc:
+            raise InputError(str(exc)) from exc
+        _print_replay(recording, out, rrd, result, label, overrides, as_json)
+        if lv is not None:
+            lv.linger()
+
+
+def _again(recording: Path) -> str:
+    """The command, to suggest it with another option."""
+    return f"magrun replay {recording}"
+
+
+def _print_replay(
+    recording: Path,
+    out: Path,
+    rrd: Path,
+    result: Any,
+    label: str,
+    overrides: tuple[str, ...],
+    as_json: bool,
+) -> None:
     summary = {**result.summary(), "source": str(recording), "mcap": str(out), "rrd": str(rrd)}
     if as_json:
         click.echo(json.dumps(summary))
@@ -140,8 +170,6 @@ def replay(
             f"({result.estimator}{', ' + ', '.join(overrides) if overrides else ''})"
         )
         click.echo(f"wrote {out} and {rrd}")
-    if open_view:
-        ctx.invoke(view, recording=rrd, save=None, web=False, port=9090)
 
 
 def _model_replay(
@@ -168,14 +196,13 @@ def _model_replay(
 
 
 def _resimulate(
-    ctx: click.Context,
     recording: Path,
     method: str | None,
     overrides: tuple[str, ...],
     label: str,
     out: Path | None,
     as_json: bool,
-    open_view: bool,
+    lv: LiveView | None,
 ) -> None:
     from magrun.recorded import RecordingReadError
     from magrun.replay import ReplayError
@@ -189,7 +216,7 @@ def _resimulate(
     if not as_json:
         click.echo(f"{recording.name}: re-simulating ...", err=True)
     try:
-        result = resimulate(recording, method, overrides, out)
+        result = resimulate(recording, method, overrides, out, view=lv.url if lv else "")
     except (ReplayError, RecordingReadError) as exc:
         raise InputError(str(exc)) from exc
     summary = result.summary()
@@ -218,5 +245,5 @@ def _resimulate(
         for line in [*summary["warnings"], *result.notes]:
             click.echo(f"  note: {line}")
         click.echo(f"wrote {result.mcap} and {result.rrd}")
-    if open_view:
-        ctx.invoke(view, recording=result.rrd, save=None, web=False, port=9090)
+    if lv is not None:
+        lv.linger()
