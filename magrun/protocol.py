@@ -413,6 +413,13 @@ class Protocol(_Strict):
         ),
     )
     robot: str = Field("magnet", description="A robot of the robots file.")
+    system: str | None = Field(
+        None,
+        description=(
+            "A coil-system folder (magrun field import-mpem writes one), relative to the "
+            "protocol file's folder; default: the paper's rig."
+        ),
+    )
     workspace: Workspace = Field(default_factory=lambda: OpenWorkspace(kind="open"))
     trajectory: TrajectorySpec
     methods: Annotated[list[str], Field(min_length=1)]
@@ -441,6 +448,20 @@ class Protocol(_Strict):
         from magrun.robot import load_robots
 
         return None if value is None else _checked_file(value, info, load_robots)
+
+    @field_validator("system")
+    @classmethod
+    def _system_folder(cls, value: str | None, info: ValidationInfo) -> str | None:
+        if value is None:
+            return None
+        path = _resolve(value, info)
+        missing = [f for f in ("system.yaml", "reference_maps.npz") if not (path / f).is_file()]
+        if missing:
+            raise ValueError(
+                f"{path}: not a coil-system folder (no {' or '.join(missing)}; "
+                "magrun field import-mpem writes one)"
+            )
+        return str(path)
 
     @field_validator("robot")
     @classmethod

@@ -47,10 +47,9 @@ import numpy as np
 
 from magrun import interrupt
 from magrun.atomic import write_text
-from magrun.field.coils import CoilSystem
 from magrun.protocol import Protocol, Trial
 from magrun.realtime import cpu_split, loop_placement
-from magrun.trial import NO_DRIVER, HardwareSpec, RigSpec, RunError, coil_gains_of
+from magrun.trial import NO_DRIVER, HardwareSpec, RigSpec, RunError, coil_gains_of, system_of
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
@@ -473,8 +472,9 @@ def run_protocol(
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
     elif rig == "hardware":
         raise RunError(NO_DRIVER)
+    coils = system_of(protocol)  # a bad system folder fails here (RunError), before any run
     if protocol.controller.coil_gains is not None:
-        coil_gains_of(protocol, CoilSystem.load())  # its channels are the coils' (RunError)
+        coil_gains_of(protocol, coils)  # its channels are the coils' (RunError)
     out = Path(out)
     folder = out / protocol.name
     path = folder / "manifest.json"

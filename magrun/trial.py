@@ -29,6 +29,8 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,10 +39,12 @@ from numpy.typing import NDArray
 from magrun.calibration import gains_in_order, load_coil_gains
 from magrun.control.base import Controller
 from magrun.control.estimation import KalmanConfig
-from magrun.control.methods import ControlConfig, make_controller
+from magrun.control.methods import ControlConfig, make_controller, shipped_models
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
-from magrun.field.coils import CoilSystem
+from magrun.field.coils import CoilFileError, CoilSystem
+from magrun.field.lut import LookupTableFieldModel
+from magrun.field.zernike import ZernikeFieldModel
 from magrun.freespace import FreeSpace
 from magrun.loop import PoseTracker, TrialLog, run_trial
 from magrun.protocol import (
@@ -292,6 +296,23 @@ class ControllerParts:
     build_s: float  # wall time of the controller's build (solvers, models)
 
 
+def system_of(protocol: Protocol) -> CoilSystem:
+    """The protocol's coil system (``system``: a folder), or the paper's rig; a
+    :class:`RunError` naming the file where the folder's description is bad."""
+    try:
+        return CoilSystem.load(protocol.system)
+    except CoilFileError as exc:
+        raise RunError(str(exc)) from exc
+
+
+@cache
+def system_models(folder: Path | None) -> tuple[ZernikeFieldModel, LookupTableFieldModel]:
+    """A system folder's Zernike and lookup-table models (loaded once per process)."""
+    if folder is None:
+        return shipped_models()
+    return ZernikeFieldModel.load(system=folder), LookupTableFieldModel.load(system=folder)
+
+
 def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
     """The protocol's coil calibration (``controller.coil_gains``) in ``coils``' channel
     order, or None; a :class:`RunError` when the file's channels are not the coils'."""
@@ -312,7 +333,7 @@ def build_controller(
     """``trial``'s scene, robot, tuning, free space and controller: the part of
     :func:`assemble` that needs no rig (the replay builds only this)."""
     protocol = trial.protocol
-    coils = coils or CoilSystem.load()
+    coils = coils or system_of(protocol)
     scene = build_scene(protocol, coils)
     robot = protocol.robot_params()
     config = control_config(protocol.controller, robot, trial.condition)
@@ -321,9 +342,11 @@ def build_controller(
     free_space = free_space_of(scene, robot)
     gains = coil_gains_of(protocol, coils)
     t0 = time.perf_counter()
+    zernike, lut = system_models(coils.folder) if coils.is_map_system else (None, None)
     controller = make_controller(
-        trial.method, robot, config, free_space=free_space, coil_gains=gains
-    )
+        trial.method, robot, config, zernike=zernike, lut=lut, free_space=free_space,
+        coil_gains=gains,
+    )  # fmt: skip
     return ControllerParts(scene, robot, config, free_space, controller, time.perf_counter() - t0)
 
 
@@ -338,7 +361,7 @@ def assemble(
     from magrun.tracking.tracker import Tracker
 
     protocol = trial.protocol
-    coils = CoilSystem.load()  # the simulated rig's and the scene's; the models carry their own
+    coils = system_of(protocol)  # the simulated rig's and the scene's; the models carry their own
     parts = build_controller(trial, coils, tune)
     scene, robot, controller = parts.scene, parts.robot, parts.controller
     simulated = rig == "sim"

@@ -27,7 +27,7 @@ from magrun.yamlio import YamlModelError
 
 def test_robots_file_holds_the_papers_robots() -> None:
     robots = load_robots()
-    assert set(robots) == {"magnet", "drug_delivery"}
+    assert set(robots) == {"magnet", "drug_delivery", "micro_magnet"}  # and a small one
     assert robots["magnet"].moment == pytest.approx(1.35e-3)
     assert robots["magnet"].length == pytest.approx(16e-3)
     assert robots["drug_delivery"].moment == pytest.approx(8.9e-4)

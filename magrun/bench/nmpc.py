@@ -4,6 +4,7 @@ the IPOPT reference, on the S-trajectory with perfect feedback."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -22,17 +23,30 @@ NMPC_VARIANTS: dict[str, tuple[str, str]] = {
 RATE_HZ = 25.0
 
 
-def s_curve_protocol(ticks: int | None) -> Any:
+#: the robot of a system's variant (:func:`bench_nmpc`'s ``systems``): one sized for small
+#: workspaces, on the paper's S scaled to the system's workspace
+SYSTEM_ROBOT = "micro_magnet"
+#: the paper's rig's workspace half width, mm, which the S is scaled from
+PAPER_HALF_WIDTH_MM = 50.0
+
+
+def s_curve_protocol(
+    ticks: int | None, system: str | Path | None = None, half_width_mm: float = 50.0
+) -> Any:
     """The benchmark's condition as a protocol: the paper's S (43 mm, 3 mm/s) in the open
     workspace, the exact pose every tick (no camera, no noise), no compute time charged,
-    and the Kalman filter's default tuning (1 mm, 3°; process 0.3 mm, 2° per tick)."""
+    and the Kalman filter's default tuning (1 mm, 3°; process 0.3 mm, 2° per tick). With a
+    ``system`` folder: that system, :data:`SYSTEM_ROBOT`, and the S (size and speed) scaled
+    by the workspace's half width ``half_width_mm`` against the paper's 50 mm."""
     from magrun.protocol import Protocol
 
+    scale = half_width_mm / PAPER_HALF_WIDTH_MM
     return Protocol.model_validate(
         {
             "name": "bench-nmpc",
-            "robot": "magnet",
-            "trajectory": {"kind": "s_curve"},
+            "robot": "magnet" if system is None else SYSTEM_ROBOT,
+            "system": None if system is None else str(system),
+            "trajectory": {"kind": "s_curve", "size_mm": 43 * scale, "speed_mm_s": 3 * scale},
             "methods": sorted({m for m, _ in NMPC_VARIANTS.values()}),
             "controller": {
                 "rate_hz": RATE_HZ,
@@ -50,8 +64,13 @@ def bench_nmpc(
     ticks: int | None = None,
     variants: tuple[str, ...] = tuple(NMPC_VARIANTS),
     progress: Callable[[str], None] | None = None,
+    systems: tuple[str | Path, ...] = (),
 ) -> dict[str, Any]:
     """Per-solve times and closed-loop tracking of the NMPC variants on one core.
+
+    ``systems``: coil-system folders on which the proposed method runs too, in the same
+    run (variant ``proposed@<folder name>``, with its channel count under ``coils``): the
+    solve time for N channels beside the paper rig's 8.
 
     Each variant runs the paper's S-trajectory (43 mm, 3 mm/s; the first ``ticks`` ticks, or
     all of it plus 1 s of hold) closed loop on the simulated rig (seed 0) with perfect
@@ -74,17 +93,31 @@ def bench_nmpc(
         "machine": machine(),
         "variants": {},
     }
+    from magrun.field.coils import CoilSystem
+
+    runs: list[tuple[str, str, str, Any]] = [
+        (name, *NMPC_VARIANTS[name], protocol) for name in variants
+    ]
+    for folder in systems:
+        coils = CoilSystem.load(folder)
+        runs.append(
+            (
+                f"proposed@{Path(folder).name}", "proposed", "rti",
+                s_curve_protocol(ticks, folder, coils.workspace_half_width * 1e3),
+            )
+        )  # fmt: skip
     with one_core() as core:
         out["pinned_core"] = core
-        for name in variants:
-            method, solver = NMPC_VARIANTS[name]
+        for name, method, solver, proto in runs:
             if progress is not None:
                 progress(name)
-            parts = assemble(single_trial(protocol, method, seed=0), tune=with_solver(solver))
+            parts = assemble(single_trial(proto, method, seed=0), tune=with_solver(solver))
             log = parts.run()
             controller = parts.controller
             solve = log.solve_times[1:]
             out["variants"][name] = {
+                "coils": controller.n_channels,
+                "robot": proto.robot,
                 "method": method,
                 "model": "lookup_table" if method == "baseline5" else "zernike",
                 "solver": "Gauss-Newton RTI + HPIPM" if solver == "rti" else "IPOPT (converged)",

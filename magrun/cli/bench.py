@@ -33,8 +33,16 @@ def bench() -> None:
     type=click.Choice(["proposed", "proposed_ipopt_reference", "b5_lut", "b5_lut_ipopt"]),
     help="Variants to run (repeatable) [default: all four].",
 )
+@click.option(
+    "--system", "systems", multiple=True,
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="A coil-system folder: run the proposed method on it too (repeatable), on the S "
+    "scaled to its workspace with the micro_magnet robot; its channel count is reported.",
+)  # fmt: skip
 @JSON_OPTION
-def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> None:
+def bench_nmpc(
+    ticks: int | None, variants: tuple[str, ...], systems: tuple[Path, ...], as_json: bool
+) -> None:
     """NMPC solve times and closed-loop tracking, fast solver vs the IPOPT reference.
 
     Each variant (proposed: Gauss-Newton RTI + HPIPM on the Zernike model;
@@ -46,7 +54,9 @@ def bench_nmpc(ticks: int | None, variants: tuple[str, ...], as_json: bool) -> N
     from magrun.bench import nmpc
 
     chosen = variants or tuple(nmpc.NMPC_VARIANTS)
-    out = nmpc.bench_nmpc(ticks, chosen, progress=None if as_json else say("running"))
+    out = nmpc.bench_nmpc(
+        ticks, chosen, progress=None if as_json else say("running"), systems=systems
+    )
     _emit(out, nmpc.summary(out), as_json)
 
 

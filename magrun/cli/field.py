@@ -77,9 +77,9 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
 @click.option(
     "--out",
     type=click.Path(file_okay=False, path_type=Path),
-    default=Path("recordings/field"),
-    show_default=True,
-    help="Folder for zernike_model.json, zernike_fit.json and zernike_figure.npz.",
+    default=None,
+    help="Folder for zernike_model.json, zernike_fit.json and zernike_figure.npz  "
+    "[default: recordings/field; with --system, the system folder].",
 )
 @click.option(
     "--max-order",
@@ -102,21 +102,37 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
     metavar="TYPE=N",
     help="Fix the order of a coil type instead of selecting it (repeatable), e.g. small=4.",
 )
+@click.option(
+    "--system", "system_dir", type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="A system folder (magrun field import-mpem): fit each of its channels (and its "
+    "background) on a disk around the workspace; the model goes into the folder unless "
+    "--out says otherwise.",
+)  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as one JSON object.")
 def field_fit(
     coils: Path | None,
     reference: Path | None,
-    out: Path,
+    out: Path | None,
+    system_dir: Path | None,
     max_order: int,
     r2_saturation: float,
     orders: tuple[str, ...],
     as_json: bool,
 ) -> None:
-    """Fit the Zernike model to reference maps and report MAE and R² per coil type and order."""
+    """Fit the Zernike model to reference maps and report MAE and R² per coil type and order
+    (per channel for a system folder)."""
     from magrun.field.fitting import fit_reference, parse_orders
     from magrun.field.reference import ReferenceMaps
 
-    system = load_coils(coils)
+    if system_dir is not None:
+        if coils is not None or reference is not None:
+            raise InputError("--system holds its own coils and maps: no --coils, --reference")
+        system = load_coils(system_dir)
+        reference = system.maps_path
+        out = out or system_dir
+    else:
+        system = load_coils(coils)
+        out = out or Path("recordings/field")
     try:
         fixed = parse_orders(list(orders))
         maps = ReferenceMaps.load(reference)
@@ -132,8 +148,9 @@ def field_fit(
         click.echo(json.dumps({**result.report, "files": {k: str(v) for k, v in paths.items()}}))
         return
     for coil_type, rep in result.report["coil_types"].items():
+        unit = "" if coil_type == "background" else "/A"  # a background is in T, not T/A
         click.echo(f"{coil_type}: selected order {rep['selected_order']} ({rep['selected_by']})")
-        click.echo("  order  terms   MAE [mT/A]       R²   max err [mT/A]")
+        click.echo(f"  order  terms   MAE [mT{unit}]       R²   max err [mT{unit}]")
         for s in rep["orders"]:
             mark = "*" if s["order"] == rep["selected_order"] else " "
             click.echo(
@@ -205,4 +222,82 @@ def field_import_comsol(
     maps.save(out)
     click.echo(
         f"wrote {out}: " + ", ".join(f"{k} {m.x.size} x {m.y.size}" for k, m in maps.maps.items())
+    )
+
+
+@field.command("import-mpem")
+@click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--plane-z-mm", type=float, required=True,
+    help="The robot's plane: z of the calibration frame, mm.",
+)  # fmt: skip
+@click.option(
+    "--center-mm", type=(float, float), required=True, metavar="X Y",
+    help="The workspace centre on that plane, calibration frame, mm.",
+)  # fmt: skip
+@click.option(
+    "--half-width-mm", type=click.FloatRange(min=0, min_open=True), required=True,
+    help="The workspace square's half width, mm.",
+)  # fmt: skip
+@click.option(
+    "--pitch-mm", type=click.FloatRange(min=0, min_open=True),
+    help="Map grid spacing, mm  [default: the width in 40 steps].",
+)  # fmt: skip
+@click.option(
+    "--max-current-a", type=click.FloatRange(min=0, min_open=True), default=10.0,
+    show_default=True, help="Per-channel current limit, A (your amplifiers').",
+)  # fmt: skip
+@click.option(
+    "--max-slew-a-s", type=click.FloatRange(min=0, min_open=True), default=200.0,
+    show_default=True, help="Per-channel slew limit, A/s (your amplifiers').",
+)  # fmt: skip
+@click.option(
+    "--out", type=click.Path(file_okay=False, path_type=Path), required=True,
+    help="The system folder to write (system.yaml, reference_maps.npz).",
+)  # fmt: skip
+def field_import_mpem(
+    calibration: Path,
+    plane_z_mm: float,
+    center_mm: tuple[float, float],
+    half_width_mm: float,
+    pitch_mm: float | None,
+    max_current_a: float,
+    max_slew_a_s: float,
+    out: Path,
+) -> None:
+    """Write a coil-system folder from an ETH multipole (MPEM) calibration.
+
+    The plane z = Z of the calibration's frame, centred at (X, Y), becomes the workspace
+    square of half width H; every coil's field and gradient per ampere are sampled on it
+    (order-1 sources, point dipoles; an Offset entry becomes the background field). Protocols
+    use the folder with `system: DIR`; `magrun field fit --system DIR` fits its Zernike model.
+    """
+    from magrun.field.mpem import MpemError, MpemModel, import_mpem
+
+    try:
+        folder = import_mpem(
+            calibration, out, plane_z_mm * 1e-3, (center_mm[0] * 1e-3, center_mm[1] * 1e-3),
+            half_width_mm * 1e-3, pitch_mm * 1e-3 if pitch_mm is not None else None,
+            max_current_a, max_slew_a_s,
+        )  # fmt: skip
+    except MpemError as exc:
+        raise InputError(str(exc)) from exc
+    system = load_coils(folder)
+    model = MpemModel.load(calibration)
+    box = model.doc.workspace
+    if box and len(box) == 3:
+        (x0, x1), (y0, y1), (z0, z1) = box
+        h = half_width_mm * 1e-3
+        cx, cy, z = center_mm[0] * 1e-3, center_mm[1] * 1e-3, plane_z_mm * 1e-3
+        if not (x0 <= cx - h and cx + h <= x1 and y0 <= cy - h and cy + h <= y1 and z0 <= z <= z1):
+            click.echo(
+                "note: the workspace reaches outside the calibrated box "
+                f"({', '.join(f'{a * 1e3:g}..{b * 1e3:g}' for a, b in box)} mm): the model is "
+                "extrapolated there",
+                err=True,
+            )
+    click.echo(
+        f"wrote {folder}: {system.name}, {system.n_channels} channels"
+        + (" and a background field" if system.has_background else "")
+        + f", workspace ±{half_width_mm:g} mm on z = {plane_z_mm:g} mm"
     )

@@ -77,10 +77,9 @@ def tracker_train(
     """
     from dataclasses import replace
 
-    from magrun.robot import load_robots
     from magrun.tracking.camera import CameraConfig
     from magrun.tracking.dataset import real_samples
-    from magrun.tracking.train import TrainConfig, train
+    from magrun.tracking.train import TrainConfig, tracked_robots, train
     from magrun.tracking.unet import load_weights, save_weights
 
     if (images is None) != (labels is None) or (images is not None and px_per_mm is None):
@@ -112,7 +111,7 @@ def tracker_train(
         def progress(step: int, total: int, loss: float) -> None:
             bar.update(1, loss)
 
-        net = train(list(load_robots().values()), cfg, camera, model, real, progress)
+        net = train(tracked_robots(), cfg, camera, model, real, progress)
     meta = {
         "steps": cfg.steps,
         "batch": cfg.batch,
@@ -214,9 +213,9 @@ def tracker_eval(
     Position error (mm), orientation error (degrees), failure rate (no pose, or more than
     1 mm off) and time per frame (ms), over both robots and each, on the default camera.
     """
-    from magrun.robot import load_robots
     from magrun.tracking.evaluate import evaluate
     from magrun.tracking.tracker import default_weights_path
+    from magrun.tracking.train import tracked_robots
     from magrun.tracking.unet import load_weights
 
     path = weights if weights is not None else default_weights_path()
@@ -225,9 +224,7 @@ def tracker_eval(
     except (ValueError, OSError, KeyError) as exc:
         raise InputError(f"{path}: cannot load weights: {exc}") from exc
     progress = Progress("evaluating", not as_json)
-    report = evaluate(
-        model, list(load_robots().values()), frames, search_frames, seed=seed, progress=progress
-    )
+    report = evaluate(model, tracked_robots(), frames, search_frames, seed=seed, progress=progress)
     report = {"weights": str(path), "trained": meta, **report}
     if as_json:
         click.echo(json.dumps(report))

@@ -1,6 +1,7 @@
-"""Current allocation for the two-layer baselines: desired force and torque → 8 currents.
+"""Current allocation for the two-layer baselines: desired force and torque → the currents.
 
-At the robot's pose the wrench is linear in the currents, ``w = A(p, θ) I`` with, per channel c
+At the robot's pose the wrench is affine in the currents, ``w = A(p, θ) I + w₀`` (w₀: a
+background field's, zero for most systems) with, per channel c
 (unit-current field B_c and gradient G_c of the allocation's field model)::
 
     F_c = G_cᵀ m            τ_c = m × B_c            m = |m| (cos θ, sin θ)
@@ -49,7 +50,7 @@ def wrench_matrix(
 ) -> tuple[FloatArray, FloatArray]:
     """``(A, b_axis)``: wrench per ampere (3, n) as (Fx, Fy, τ), and field along the axis (n,).
 
-    Units: N/A, N m/A and T/A.
+    Units: N/A, N m/A and T/A. The background field's share is :func:`background_wrench`.
     """
     B, G = model.unit_field_and_gradient(np.asarray(position, dtype=np.float64))
     u = np.array([np.cos(theta), np.sin(theta)])
@@ -57,6 +58,17 @@ def wrench_matrix(
     F = np.einsum("ckl,k->cl", G, m)  # F_l = Σ_k m_k ∂B_k/∂x_l
     tau = m[0] * B[:, 1] - m[1] * B[:, 0]
     return np.vstack([F.T, tau]), B @ u
+
+
+def background_wrench(
+    model: PlanarFieldModel, position: FloatArray, theta: float, moment: float
+) -> tuple[FloatArray, float]:
+    """The wrench (3,) the background field exerts at every current (N, N m), and its field
+    along the robot's axis (T); zeros where the system has none."""
+    B, G = model.background_field_and_gradient(np.asarray(position, dtype=np.float64))
+    u = np.array([np.cos(theta), np.sin(theta)])
+    m = moment * u
+    return np.array([*(G.T @ m), m[0] * B[1] - m[1] * B[0]]), float(B @ u)
 
 
 def allocate(
@@ -70,8 +82,10 @@ def allocate(
     config: AllocationConfig,
     max_current: float,
 ) -> tuple[FloatArray, FloatArray]:
-    """Currents (n,) in A for the desired ``wrench`` (Fx, Fy, τ), and the wrench they give."""
+    """Currents (n,) in A for the desired ``wrench`` (Fx, Fy, τ), and the wrench they give
+    (the background's share included)."""
     A, b_axis = wrench_matrix(model, position, theta, moment)
+    w0, b0 = background_wrench(model, position, theta, moment)
     n = A.shape[1]
     row_scale = np.array([config.force_ref, config.force_ref, config.torque_ref])
     align_w = np.sqrt(config.align_weight) / config.align_ref
@@ -82,10 +96,12 @@ def allocate(
             np.sqrt(config.regularisation) / max_current * np.eye(n),
         ]
     )
-    rhs = np.concatenate([wrench / row_scale, [align_w * config.align_field], np.zeros(n)])
+    rhs = np.concatenate(
+        [(wrench - w0) / row_scale, [align_w * (config.align_field - b0)], np.zeros(n)]
+    )
     lo = np.minimum(lower, upper - 1e-12)
     currents = _box_lsq(n)(M, rhs, lo, upper)
-    return currents, A @ currents
+    return currents, A @ currents + w0
 
 
 @lru_cache(maxsize=4)

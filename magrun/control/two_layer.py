@@ -30,7 +30,12 @@ from numpy.typing import NDArray
 from scipy.linalg import expm
 
 from magrun.angles import angle_near, wrap_angle
-from magrun.control.allocation import AllocationConfig, allocate, wrench_matrix
+from magrun.control.allocation import (
+    AllocationConfig,
+    allocate,
+    background_wrench,
+    wrench_matrix,
+)
 from magrun.control.base import Plan, Planner
 from magrun.control.qp import BoxLeastSquares
 from magrun.field.model import PlanarFieldModel
@@ -138,7 +143,8 @@ class TwoLayerPlanner(Planner):
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         A, _ = wrench_matrix(self.model, state[:2], float(state[2]), self.robot.moment)
-        return self._predict_with_wrench(state, A @ currents)
+        w0, _ = background_wrench(self.model, state[:2], float(state[2]), self.robot.moment)
+        return self._predict_with_wrench(state, A @ currents + w0)
 
     def _predict_with_wrench(self, state: FloatArray, wrench: FloatArray) -> FloatArray:
         Ad, Bd = linear_model(self.robot, float(state[2]), self.dt)

@@ -19,20 +19,30 @@ at angle α: ``B(p) = R(α) B_type(R(α)ᵀ p)`` and ``∇B(p) = R(α) ∇B_type
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import Self
+from typing import Any, Literal, Self
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from magrun.yamlio import YamlModelError, parse_yaml_model
 
 COIL_TYPES = ("small", "medium", "large")
 DEFAULT_COILS_FILE = "coils.yaml"
+#: a system folder's description and maps (magrun field import-mpem writes them)
+SYSTEM_FILE = "system.yaml"
+MAPS_FILE = "reference_maps.npz"
+#: the fewest driven channels a coil system may have
+MIN_CHANNELS = 3
+_CHANNEL_NAME = re.compile(r"[A-Za-z0-9_]+")
+#: the Zernike disk of a map system: the workspace's circumscribed circle, this much larger
+DISK_MARGIN = 1e-3
+_KIND_MAPS = re.compile(r"^kind:\s*['\"]?maps['\"]?\s*(#.*)?$", re.MULTILINE)
 
 
 class CoilTypeSpec(BaseModel):
@@ -119,6 +129,51 @@ class CoilSystemSpec(BaseModel):
         return self.model_dump(mode="json", exclude={"max_current_a", "max_slew_rate_a_per_s"})
 
 
+class MapSystemSpec(BaseModel):
+    """A coil system given by its maps: N driven channels, each with its own unit-current
+    map in the system folder's ``reference_maps.npz`` (no symmetry assumed), and optionally
+    a background field present at every current (YAML units: mm, A, A/s)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["maps"] = Field(description="A system given by one map per channel.")
+    name: str = Field(min_length=1, description="The system's name, for reports.")
+    description: str = ""
+    workspace_half_width_mm: float = Field(
+        gt=0, description="The workspace is the square |x|, |y| <= this around the origin."
+    )
+    max_current_a: float = Field(gt=0, description="Per-channel current limit.")
+    max_slew_rate_a_per_s: float = Field(gt=0, description="Per-channel slew limit.")
+    channels: tuple[str, ...] = Field(
+        min_length=MIN_CHANNELS, description="The driven channels, in current-vector order."
+    )
+    background: bool = Field(
+        default=False, description="The maps hold a 'background' field, present at 0 A."
+    )
+    zernike_disk_radius_mm: float | None = Field(
+        default=None, gt=0,
+        description="Radius of the Zernike fitting disk, centred on the workspace "
+        "(default: the square's circumscribed circle, 0.1 % larger).",
+    )  # fmt: skip
+    source: dict[str, Any] = Field(default_factory=dict, description="Provenance.")
+
+    @field_validator("channels")
+    @classmethod
+    def _names(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        bad = [n for n in v if not _CHANNEL_NAME.fullmatch(n)]
+        if bad:
+            raise ValueError(f"channel names are letters, digits and '_': {bad}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"channel names must be unique, got {list(v)}")
+        if "background" in v:
+            raise ValueError("'background' names the background field, not a channel")
+        return v
+
+    def geometry(self) -> dict[str, object]:
+        """The document without the drive limits: what a field map depends on (JSON types)."""
+        return self.model_dump(mode="json", exclude={"max_current_a", "max_slew_rate_a_per_s"})
+
+
 def rotation_matrix(angle: float) -> NDArray[np.float64]:
     """Counter-clockwise rotation by ``angle`` (rad) about +z, shape (2, 2).
 
@@ -146,20 +201,32 @@ class Channel:
 
 @dataclass(frozen=True)
 class CoilSystem:
-    """The coil rig: geometry per coil type, stacks, driven channels and limits (SI units)."""
+    """The coil rig: its driven channels, workspace and limits (SI units).
 
-    spec: CoilSystemSpec
+    Two kinds of description:
+
+    - the paper's rig and rigs like it (:class:`CoilSystemSpec`): coil types placed in
+      stacks rotated about the workspace centre; a channel's map is its type's, rotated;
+    - any other system (:class:`MapSystemSpec`, a *system folder* that ``magrun field
+      import-mpem`` writes): N channels, each with its own map, and an optional background
+      field; every channel's rotation is the identity.
+    """
+
+    spec: CoilSystemSpec | MapSystemSpec
     source: str = "<memory>"
+    folder: Path | None = None  # a system folder's path (its maps are there)
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> CoilSystem:
-        """Load a coil-system YAML file; ``None`` loads the paper's rig shipped with magrun.
+        """Load a coil-system YAML file or a system folder (its ``system.yaml``); ``None``
+        loads the paper's rig shipped with magrun.
 
         Raises
         ------
         magrun.field.coils.CoilFileError
             If the file cannot be read or does not match the schema.
         """
+        folder = None
         if path is None:
             ref = resources.files("magrun.field") / "data" / DEFAULT_COILS_FILE
             text, source = (
@@ -167,19 +234,66 @@ class CoilSystem:
                 f"magrun:field/data/{DEFAULT_COILS_FILE}",
             )
         else:
+            path = Path(path)
+            if path.is_dir():
+                folder, path = path, path / SYSTEM_FILE
             try:
-                text, source = Path(path).read_text(encoding="utf-8"), str(path)
+                text, source = path.read_text(encoding="utf-8"), str(path)
             except (OSError, UnicodeDecodeError) as exc:
                 raise CoilFileError(f"{path}: cannot read coil file: {exc}") from exc
+        kind: type[CoilSystemSpec] | type[MapSystemSpec] = (
+            MapSystemSpec if _KIND_MAPS.search(text) else CoilSystemSpec
+        )
         try:
-            spec = parse_yaml_model(text, CoilSystemSpec, source)
+            spec = parse_yaml_model(text, kind, source)
         except YamlModelError as exc:
             raise CoilFileError(str(exc)) from exc
-        return cls(spec=spec, source=source)
+        if isinstance(spec, MapSystemSpec) and folder is None:
+            folder = Path(source).parent  # a system.yaml named directly
+        return cls(spec=spec, source=source, folder=folder)
+
+    @property
+    def is_map_system(self) -> bool:
+        return isinstance(self.spec, MapSystemSpec)
+
+    @property
+    def name(self) -> str:
+        return self.spec.name if isinstance(self.spec, MapSystemSpec) else "paper rig"
+
+    @property
+    def maps_path(self) -> Path | None:
+        """The system folder's reference maps (None: the shipped maps of the paper's rig)."""
+        return self.folder / MAPS_FILE if self.folder is not None else None
+
+    @property
+    def has_background(self) -> bool:
+        """Whether a background field acts at every current (its map: ``background``)."""
+        return isinstance(self.spec, MapSystemSpec) and self.spec.background
 
     @property
     def coil_types(self) -> dict[str, CoilTypeSpec]:
-        return self.spec.coil_types
+        """The paper kind's winding geometry per coil type (none for a map system)."""
+        return self.spec.coil_types if isinstance(self.spec, CoilSystemSpec) else {}
+
+    @property
+    def fit_types(self) -> tuple[str, ...]:
+        """The maps a field model is fitted to: every coil type of the paper kind; every
+        channel of a map system, and its background."""
+        if isinstance(self.spec, CoilSystemSpec):
+            return tuple(self.spec.coil_types)
+        return (*self.spec.channels, *(("background",) if self.spec.background else ()))
+
+    def zernike_disk(self, name: str) -> tuple[tuple[float, float], float]:
+        """Centre (m, base-stack frame) and radius (m) of the Zernike disk of a map
+        :attr:`fit_types` names: Table II's for the paper's coil types; for a map system the
+        disk around the workspace (``zernike_disk_radius_mm``, or the square's circumscribed
+        circle plus :data:`DISK_MARGIN`)."""
+        if isinstance(self.spec, CoilSystemSpec):
+            ct = self.spec.coil_types[name]
+            return (0.0, ct.center), ct.disk_radius
+        r = self.spec.zernike_disk_radius_mm
+        radius = r * 1e-3 if r is not None else self.workspace_half_width * math.sqrt(2)
+        return (0.0, 0.0), radius * (1 + DISK_MARGIN) if r is None else radius
 
     @property
     def workspace_half_width(self) -> float:
@@ -198,11 +312,16 @@ class CoilSystem:
 
     @cached_property
     def channels(self) -> tuple[Channel, ...]:
-        """Driven coils, grouped by stack in stack order, then by ``driven_types`` order."""
+        """Driven coils: of the paper kind grouped by stack in stack order, then by
+        ``driven_types`` order; of a map system in its ``channels`` order."""
+        spec = self.spec
+        if isinstance(spec, MapSystemSpec):
+            eye = rotation_matrix(0.0)
+            return tuple(Channel(n, n, "", 0.0, eye) for n in spec.channels)
         out = []
-        for stack in self.spec.stacks:
+        for stack in spec.stacks:
             angle = math.radians(stack.angle_deg)
-            for ctype in self.spec.driven_types:
+            for ctype in spec.driven_types:
                 out.append(
                     Channel(
                         name=f"{ctype}_{stack.name}",

@@ -39,7 +39,7 @@ ERROR_THRESHOLD_T = 4e-3  # the paper's "below 4 mT across the majority of the w
 # The region the paper's trajectories use: the S-trajectory's 43 mm square, centred.
 CENTRAL_HALF_WIDTH = 21.5e-3
 
-MODEL_FILE = "zernike_model.json"
+MODEL_FILE = zernike.SYSTEM_MODEL_FILE  # "zernike_model.json"
 REPORT_FILE = "zernike_fit.json"
 FIGURE_FILE = "zernike_figure.npz"
 
@@ -69,20 +69,20 @@ def fit_coil_type(
     coils: CoilSystem, reference: ReferenceMaps, coil_type: str, orders: Iterable[int]
 ) -> dict[int, tuple[ZernikeCoilFit, float]]:
     """Least-squares fits of one coil type, order → (fit, condition number of the design)."""
-    spec, fmap = coils.coil_types[coil_type], reference[coil_type]
+    fmap = reference[coil_type]
+    center, radius = coils.zernike_disk(coil_type)
     pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
-    center = (0.0, spec.center)
-    u, v = (pts[:, 0] - center[0]) / spec.disk_radius, (pts[:, 1] - center[1]) / spec.disk_radius
+    u, v = (pts[:, 0] - center[0]) / radius, (pts[:, 1] - center[1]) / radius
     # Table II rounds ρ_max to 1 µm and the far corner of the workspace lies 0.2 µm beyond it
     if np.max(np.hypot(u, v)) > 1.0 + DISK_TOLERANCE:
         raise ValueError(
             f"{coil_type}: reference points lie outside the Zernike disk of radius "
-            f"{spec.disk_radius_mm} mm; enlarge disk_radius_mm or crop the map"
+            f"{radius * 1e3:g} mm; enlarge the disk radius or crop the map"
         )
     out = {}
     for order in orders:
         lsq = zernike.fit(u, v, B, order)
-        fit = ZernikeCoilFit(coil_type, order, center, spec.disk_radius, lsq.coefficients)
+        fit = ZernikeCoilFit(coil_type, order, center, radius, lsq.coefficients)
         out[order] = (fit, lsq.condition_number)
     return out
 
@@ -138,7 +138,7 @@ def fit_reference(
         Coil type → order, overriding the automatic choice.
     """
     fixed = dict(fixed_orders or {})
-    unknown = set(fixed) - set(coils.coil_types)
+    unknown = set(fixed) - set(coils.fit_types)
     if unknown:
         raise ValueError(f"--order names unknown coil types {sorted(unknown)}")
     if max_order < 1:
@@ -156,7 +156,7 @@ def fit_reference(
         "coil_types": {},
     }
     figure: dict[str, NDArray[np.float64]] = {}
-    for coil_type in coils.coil_types:
+    for coil_type in coils.fit_types:
         fmap = reference[coil_type]
         pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
         by_order = fit_coil_type(coils, reference, coil_type, range(1, max_order + 1))

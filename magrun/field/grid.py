@@ -43,9 +43,13 @@ class ChannelGrid:
         First grid node, m.
     step : float
         Grid spacing, m (equal in x and y).
-    table : ndarray, shape (nx, ny, n_channels, 6)
-        ``(Bx, By, ∂Bx/∂x, ∂Bx/∂y, ∂By/∂x, ∂By/∂y)`` per ampere, T/A and T/(m A).
+    table : ndarray, shape (nx, ny, n_channels (+ 1), 6)
+        ``(Bx, By, ∂Bx/∂x, ∂Bx/∂y, ∂By/∂x, ∂By/∂y)`` per ampere, T/A and T/(m A); with a
+        background, its field (T, T/m) is one more column, read at a "current" of 1
+        (:meth:`inputs`).
     channel_names : tuple of str
+    background : bool
+        Whether the last column is a background field.
     """
 
     x0: float
@@ -53,6 +57,15 @@ class ChannelGrid:
     step: float
     table: FloatArray
     channel_names: tuple[str, ...]
+    background: bool = False
+
+    def inputs(self, currents: ArrayLike) -> FloatArray:
+        """What the table is contracted with: ``currents`` (..., n_channels) A, and a 1 for
+        the background where there is one."""
+        I = np.asarray(currents, dtype=np.float64)
+        if not self.background:
+            return I
+        return np.concatenate([I, np.ones((*I.shape[:-1], 1))], axis=-1)
 
     @classmethod
     def from_reference(cls, coils: CoilSystem, reference: ReferenceMaps) -> ChannelGrid:
@@ -63,7 +76,12 @@ class ChannelGrid:
         if not np.allclose(np.diff(fmap.x), step) or not np.allclose(np.diff(fmap.y), step):
             raise ValueError("ChannelGrid needs reference maps on a regular square grid")
         X, Y = np.meshgrid(fmap.x, fmap.y, indexing="ij")
-        B, G = lut.unit_field_and_gradient(np.stack([X, Y], axis=-1))
+        points = np.stack([X, Y], axis=-1)
+        B, G = lut.unit_field_and_gradient(points)
+        if coils.has_background:
+            B0, G0 = lut.background_field_and_gradient(points)
+            B = np.concatenate([B, B0[..., None, :]], axis=-2)
+            G = np.concatenate([G, G0[..., None, :, :]], axis=-3)
         table = np.concatenate([B, G.reshape(*G.shape[:-2], 4)], axis=-1)
         return cls(
             x0=float(fmap.x[0]),
@@ -71,17 +89,21 @@ class ChannelGrid:
             step=step,
             table=np.ascontiguousarray(table),
             channel_names=coils.channel_names,
+            background=coils.has_background,
         )
 
     @classmethod
     def load(
         cls, coils: CoilSystem | None = None, reference: str | Path | None = None
     ) -> ChannelGrid:
-        """The grid of the shipped (or given) reference maps for ``coils`` (default rig)."""
-        return cls.from_reference(coils or CoilSystem.load(), ReferenceMaps.load(reference))
+        """The grid of the shipped (or given) reference maps for ``coils`` (default rig; a
+        system folder's coils read the folder's maps)."""
+        coils = coils or CoilSystem.load()
+        path = reference if reference is not None else coils.maps_path
+        return cls.from_reference(coils, ReferenceMaps.load(path))
 
     def unit(self, x: float, y: float) -> FloatArray:
-        """Bilinear values of every channel at (x, y) m: shape (n_channels, 6)."""
+        """Bilinear values of every column at (x, y) m: shape (n_channels (+ 1), 6)."""
         nx, ny = self.table.shape[:2]
         fx, fy = (x - self.x0) / self.step, (y - self.y0) / self.step
         i = min(max(math.floor(fx), 0), nx - 2)
@@ -94,7 +116,7 @@ class ChannelGrid:
 
     def field(self, x: float, y: float, currents: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Total field (2,) in T and gradient (2, 2) in T/m at (x, y) for ``currents`` in A."""
-        v = np.asarray(currents, dtype=np.float64) @ self.unit(x, y)
+        v = self.inputs(currents) @ self.unit(x, y)
         return v[:2], v[2:].reshape(2, 2)
 
 

@@ -76,7 +76,9 @@ class LookupTableFieldModel(PlanarFieldModel):
         self.reference = reference
         self._numpy: dict[str, RegularGridInterpolator | _UniformGrid] = {}
         self._casadi: dict[str, ca.Function] = {}
-        for coil_type in {ch.coil_type for ch in coils.channels}:
+        for coil_type in {ch.coil_type for ch in coils.channels} | (
+            {"background"} if coils.has_background else set()
+        ):
             fmap = reference[coil_type]
             table = _table(fmap)
             self._numpy[coil_type] = _UniformGrid.of(fmap.x, fmap.y, table) or (
@@ -91,10 +93,17 @@ class LookupTableFieldModel(PlanarFieldModel):
 
     @classmethod
     def load(
-        cls, coils: CoilSystem | None = None, path: str | Path | None = None
+        cls,
+        coils: CoilSystem | None = None,
+        path: str | Path | None = None,
+        system: str | Path | None = None,
     ) -> LookupTableFieldModel:
-        """The model on the shipped reference maps (or ``path``) for ``coils`` (default rig)."""
-        return cls(coils or CoilSystem.load(), ReferenceMaps.load(path))
+        """The model on the shipped reference maps (or ``path``) for ``coils`` (default rig);
+        or on a system folder's maps (``system``, ``magrun field import-mpem``)."""
+        if system is not None:
+            coils = CoilSystem.load(system)
+        coils = coils or CoilSystem.load()
+        return cls(coils, ReferenceMaps.load(path if path is not None else coils.maps_path))
 
     def type_field(
         self, coil_type: str, q: NDArray[np.float64]

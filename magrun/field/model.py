@@ -10,6 +10,10 @@ types in their stacks by rotation and superposes the coils' currents::
 
 so the Zernike model, the lookup-table model and any future one differ only where they must.
 
+A map system (:class:`~magrun.field.coils.MapSystemSpec`) may add a background field, present
+at every current: :meth:`PlanarFieldModel.field_and_gradient` and the CasADi form include it,
+the unit-current maps do not.
+
 Conventions: positions are (x, y) in metres in the workspace frame; fields are (Bx, By) in
 tesla; a gradient ``G`` has ``G[..., k, l] = ∂B_k/∂x_l`` in tesla per metre; currents are in
 amperes, one per driven channel in :attr:`CoilSystem.channels` order.
@@ -27,6 +31,8 @@ from numpy.typing import ArrayLike, NDArray
 from magrun.field.coils import CoilSystem
 
 Expr = Any  # a CasADi SX or MX expression, or a number
+#: the name under which a model holds a map system's background field (T, not T/A)
+BACKGROUND = "background"
 FloatArray = NDArray[np.float64]
 
 
@@ -112,6 +118,15 @@ class PlanarFieldModel(ABC):
             G[:, idx] = np.einsum("kia,knab,kjb->nkij", rots, Gl, rots)
         return B.reshape(*lead, n_ch, 2), G.reshape(*lead, n_ch, 2, 2)
 
+    def background_field_and_gradient(self, positions: ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """The field (..., 2) in T and gradient (..., 2, 2) in T/m present at every current
+        (a map system's ``background``); zeros where the system has none."""
+        p = np.asarray(positions, dtype=np.float64)
+        if not self.coils.has_background:
+            return np.zeros(p.shape), np.zeros((*p.shape, 2))
+        B, G = self.type_field(BACKGROUND, p.reshape(-1, 2))
+        return B.reshape(p.shape), G.reshape(*p.shape, 2)
+
     def unit_field(self, positions: ArrayLike) -> FloatArray:
         """Field of every channel at 1 A, shape (..., n_channels, 2), T/A."""
         return self.unit_field_and_gradient(positions)[0]
@@ -133,16 +148,20 @@ class PlanarFieldModel(ABC):
                 f"currents must end in {self.coils.n_channels} channels, got shape {I.shape}"
             )
         B, G = self.unit_field_and_gradient(positions)
-        return np.einsum("...ck,...c->...k", B, I), np.einsum("...ckl,...c->...kl", G, I)
+        B0, G0 = self.background_field_and_gradient(positions)
+        return (
+            B0 + np.einsum("...ck,...c->...k", B, I),
+            G0 + np.einsum("...ckl,...c->...kl", G, I),
+        )
 
     def casadi_field_and_gradient(self, position: Expr, currents: Expr) -> tuple[Expr, Expr]:
-        """Field (2×1) and gradient (2×2) as CasADi expressions of a position and currents.
+        """Field (2×1) and gradient (2×2) as CasADi expressions of a position and currents,
+        the background included.
 
         ``position`` is a 2-vector and ``currents`` an n_channels-vector, both SX or MX.
         """
         px, py = position[0], position[1]
-        Bsum: list[Expr] = [0, 0]
-        Gsum: list[list[Expr]] = [[0, 0], [0, 0]]
+        Bsum, Gsum = self.casadi_background(px, py)
         for c, ch in enumerate(self.coils.channels):
             R = ch.rotation
             # q = Rᵀ p, dropping the exact zeros of 90° rotations from the expression graph
@@ -156,6 +175,13 @@ class PlanarFieldModel(ABC):
                     g = weighted_sum(R[k], [weighted_sum(R[l], Gl[a]) for a in range(2)])
                     Gsum[k][l] = Gsum[k][l] + currents[c] * g
         return ca.vertcat(*Bsum), ca.blockcat(Gsum)
+
+    def casadi_background(self, px: Expr, py: Expr) -> tuple[list[Expr], list[list[Expr]]]:
+        """The background field and gradient as expressions (zeros where there is none)."""
+        if not self.coils.has_background:
+            return [0, 0], [[0, 0], [0, 0]]
+        B, G = self.type_field_casadi(BACKGROUND, px, py)
+        return list(B), [list(row) for row in G]
 
     def casadi_function(self, name: str = "field") -> ca.Function:
         """``name(p[2], I[n]) -> (B[2], G[2x2])`` built from SX expressions."""

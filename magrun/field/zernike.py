@@ -36,11 +36,12 @@ from math import factorial
 from pathlib import Path
 from typing import Any
 
+import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magrun import atomic
-from magrun.field.coils import CoilSystem, CoilSystemSpec
+from magrun.field.coils import CoilSystem, CoilSystemSpec, MapSystemSpec
 from magrun.field.model import PlanarFieldModel, weighted_sum
 from magrun.field.polynomial import PolynomialField
 
@@ -309,6 +310,8 @@ class ZernikeFieldModel(PlanarFieldModel):
     def __init__(self, coils: CoilSystem, fits: dict[str, ZernikeCoilFit]) -> None:
         super().__init__(coils)
         missing = {ch.coil_type for ch in coils.channels} - set(fits)
+        if coils.has_background and "background" not in fits:
+            missing.add("background")
         if missing:
             raise ValueError(f"no Zernike fit for driven coil types {sorted(missing)}")
         self.fits = fits
@@ -342,7 +345,11 @@ class ZernikeFieldModel(PlanarFieldModel):
         The term-by-term form remains :meth:`casadi_field_and_gradient_terms`; the two agree to
         rounding (tests/test_nmpc.py).
         """
-        return self.polynomial.casadi_field_and_gradient(position, currents)
+        B, G = self.polynomial.casadi_field_and_gradient(position, currents)
+        if not self.coils.has_background:
+            return B, G
+        B0, G0 = self.casadi_background(position[0], position[1])
+        return B + ca.vertcat(*B0), G + ca.blockcat(G0)
 
     def casadi_field_and_gradient_terms(self, position: Any, currents: Any) -> tuple[Any, Any]:
         """The CasADi form summed term by term over Zernike polynomials and channels."""
@@ -382,14 +389,27 @@ class ZernikeFieldModel(PlanarFieldModel):
         atomic.write_text(path, json.dumps(self.to_json(), indent=1) + "\n")
 
     @classmethod
-    def load(cls, path: str | Path | None = None) -> ZernikeFieldModel:
-        """Read a model written by :meth:`save`; ``None`` reads the one shipped with magrun."""
+    def load(
+        cls, path: str | Path | None = None, system: str | Path | None = None
+    ) -> ZernikeFieldModel:
+        """Read a model written by :meth:`save`; ``None`` reads the one shipped with magrun.
+
+        ``system``: a system folder (``magrun field import-mpem``): its fitted model
+        (``zernike_model.json``, which the import writes and ``magrun field fit --system``
+        writes again with other options).
+        """
+        if system is not None:
+            return cls._of_system(CoilSystem.load(system))
         path = Path(path) if path is not None else default_model_path()
         try:
             doc = json.loads(path.read_text(encoding="utf-8"))
             if doc.get("format_version") != MODEL_FORMAT_VERSION:
                 raise ValueError(f"unsupported format_version {doc.get('format_version')!r}")
-            coils = CoilSystem(spec=CoilSystemSpec.model_validate(doc["coils"]), source=str(path))
+            kind = MapSystemSpec if doc["coils"].get("kind") == "maps" else CoilSystemSpec
+            coils = CoilSystem(
+                spec=kind.model_validate(doc["coils"]), source=str(path),
+                folder=path.parent if kind is MapSystemSpec else None,
+            )  # fmt: skip
             fits = {
                 name: ZernikeCoilFit(
                     coil_type=name,
@@ -403,6 +423,28 @@ class ZernikeFieldModel(PlanarFieldModel):
         except (OSError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{path}: not a readable magrun Zernike model: {exc}") from exc
         return cls(coils, fits)
+
+    @classmethod
+    def _of_system(cls, coils: CoilSystem) -> ZernikeFieldModel:
+        if coils.folder is None:
+            return cls.load()
+        saved = coils.folder / SYSTEM_MODEL_FILE
+        if not saved.is_file():
+            raise ValueError(
+                f"{coils.folder}: no {SYSTEM_MODEL_FILE}; fit one with "
+                f"'magrun field fit --system {coils.folder}'"
+            )
+        model = cls.load(saved)
+        if model.coils.spec.geometry() != coils.spec.geometry():
+            raise ValueError(
+                f"{saved} was fitted to another system than {coils.source}: fit it again "
+                f"with 'magrun field fit --system {coils.folder}'"
+            )
+        return cls(coils, model.fits)  # the folder's limits, which a fit does not fix
+
+
+#: a system folder's fitted model (magrun.field.fitting writes it under this name)
+SYSTEM_MODEL_FILE = "zernike_model.json"
 
 
 def default_model_path() -> Path:

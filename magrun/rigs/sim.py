@@ -162,8 +162,8 @@ class SimRig(Rig):
         coils: CoilSystem | None = None,
         plant_seed: int | None = None,
     ) -> SimRig:
-        """The paper's rig with the shipped reference maps (``robot``: a robot of robots.yaml
-        or its parameters; ``coils``: the paper's coil system, already loaded; ``plant_seed``:
+        """The paper's rig with the shipped reference maps, or the system ``coils`` with its
+        folder's maps (``robot``: a robot of robots.yaml or its parameters; ``plant_seed``:
         see the class)."""
         coils = coils or CoilSystem.load()
         params = load_robot(robot) if isinstance(robot, str) else robot
@@ -218,12 +218,12 @@ class SimRig(Rig):
         field: Callable[[float, float], tuple[list[float], Any]]
         for k in range(n):
             if k < len(ramp):  # the step uses the current at its midpoint
-                drive = 0.5 * (self.driven + ramp[k]) * self.coil_gains
+                drive = self.grid.inputs(0.5 * (self.driven + ramp[k]) * self.coil_gains)
                 self.driven = ramp[k]
                 field = partial(self._cells.read, drive)
             else:  # the amplifiers have reached the target (the usual case): hold it
                 if self._held is None:  # the target's field, kept until apply() changes it
-                    self._held = self._cells.held(self.target * self.coil_gains)
+                    self._held = self._cells.held(self.grid.inputs(self.target * self.coil_gains))
                 field = self._held
             state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
             state = self._contact_step(state)
@@ -240,6 +240,7 @@ class SimRig(Rig):
             self.driven = ramp[-1]
         drives[m:] = self.target * self.coil_gains
         g = self.grid
+        drives = g.inputs(drives)  # and the background's column, if the system has one
         state = self.state.copy()
         k = 0
         while k < n:

@@ -28,6 +28,18 @@ from magrun.tracking.unet import KeypointUNet, gaussian_heatmaps, to_input
 FloatArray = NDArray[np.float64]
 
 
+#: the robots the tracker learns and is evaluated on: the paper's two, which the default
+#: camera frames (robots.yaml's others, e.g. micro_magnet for small workspaces, it does not)
+TRACKED_ROBOTS = ("magnet", "drug_delivery")
+
+
+def tracked_robots() -> list[RobotParams]:
+    """:data:`TRACKED_ROBOTS` from robots.yaml."""
+    from magrun.robot import load_robot
+
+    return [load_robot(name) for name in TRACKED_ROBOTS]
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings; the defaults train the shipped model in a few CPU minutes."""

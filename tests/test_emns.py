@@ -1,0 +1,317 @@
+"""Any electromagnetic navigation system: MPEM calibrations imported, fitted and driven.
+
+The importer is checked against an independent computation (magpylib's point dipoles, and
+finite differences of them for the gradients) and against the closed-form on-axis field of
+a dipole; the system folders' models against the N-channel shape contract; a 3-channel
+system and the shipped OctoMag run closed loops.
+"""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from pathlib import Path
+
+import magpylib as mp
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from numpy.testing import assert_allclose
+
+from magrun.cli import cli
+from magrun.field.coils import CoilSystem
+from magrun.field.lut import LookupTableFieldModel
+from magrun.field.mpem import MpemError, MpemModel, import_mpem
+from magrun.field.reference import ReferenceMaps
+from magrun.field.zernike import ZernikeFieldModel
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = {
+    "octomag": (ROOT / "systems" / "octomag" / "OctoMag_Calibration.yaml", 10e-3),
+    "minimag": (ROOT / "systems" / "minimag" / "MINIMAG_E090094.yaml", 5e-3),
+}
+MU0 = 4e-7 * math.pi
+
+
+def _magpylib_field(model: MpemModel, coil: str, points: np.ndarray) -> np.ndarray:
+    """The coil's field per ampere from magpylib dipoles: b = μ0 m / 4π, m = 4π b / μ0."""
+    pos, dirs, b = model._sources(coil)
+    dipoles = [
+        mp.misc.Dipole(moment=4 * math.pi / MU0 * bi * di, position=pi)
+        for pi, di, bi in zip(pos, dirs, b, strict=True)
+    ]
+    return np.asarray(mp.getB(dipoles, points, sumup=True), dtype=np.float64)
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_imported_maps_agree_with_magpylib(name: str, tmp_path: Path) -> None:
+    """Every channel's map: the field within 0.1 % of the largest field, the gradient (central
+    differences of magpylib, 1 µm steps) within 1 % of the largest gradient."""
+    cal, half = SHIPPED[name]
+    folder = import_mpem(cal, tmp_path / name, 0.0, (0.0, 0.0), half, pitch=half / 5)
+    maps = ReferenceMaps.load(folder / "reference_maps.npz")
+    model = MpemModel.load(cal)
+    for coil in model.coil_names:
+        fmap = maps[coil]
+        xy = fmap.points().reshape(-1, 2)
+        pts = np.column_stack([xy, np.zeros(len(xy))])
+        B = _magpylib_field(model, coil, pts)[:, :2]
+        h = 1e-6
+        steps = np.eye(3)[:2] * h
+        G = np.stack(
+            [
+                (_magpylib_field(model, coil, pts + e) - _magpylib_field(model, coil, pts - e))
+                for e in steps
+            ],
+            axis=-1,
+        )[:, :2] / (2 * h)
+        got_B, got_G = fmap.B.reshape(-1, 2), fmap.dB.reshape(-1, 2, 2)
+        assert np.max(np.abs(got_B - B)) < 1e-3 * np.max(np.abs(B)), coil
+        assert np.max(np.abs(got_G - G)) < 1e-2 * np.max(np.abs(G)), coil
+
+
+SYNTHETIC = """\
+Coil_List:
+  - north
+  - east
+  - south
+  - Offset
+north:
+  Source_List: [Src_0]
+  Src_0:
+    Source_Position: [0.0, 0.05, 0.0]
+    Source_Direction: [0.0, -2.0, 0.0]     # not unit: normalised
+    B_Coeff: [2.0e-7]
+    A_Coeff: ~
+east:
+  Source_List: [Src_0, Src_1]
+  Src_0:
+    Source_Position: [0.05, 0.0, 0.0]
+    Source_Direction: [-1.0, 0.0, 0.0]
+    B_Coeff: [1.0e-7]
+  Src_1:
+    Source_Position: [0.06, 0.01, 0.02]
+    Source_Direction: [0.0, 0.0, 1.0]
+    B_Coeff: [3.0e-8]
+south:
+  Source_List: [Src_0]
+  Src_0:
+    Source_Position: [0.0, -0.05, 0.0]
+    Source_Direction: [0.0, 1.0, 0.0]
+    B_Coeff: [2.0e-7]
+Offset:
+  Source_List: [Src_0]
+  Src_0:
+    Source_Position: [-0.3, 0.0, 0.0]
+    Source_Direction: [1.0, 0.0, 0.0]
+    B_Coeff: [2.7e-5]
+Workspace_Dimensions: [[-0.01, 0.01], [-0.01, 0.01], [-0.01, 0.01]]
+System_Name: three coils and a background
+"""
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A synthetic three-channel system with a background field, imported (±10 mm)."""
+    base = tmp_path_factory.mktemp("three")
+    (base / "three.yaml").write_text(SYNTHETIC)
+    return import_mpem(base / "three.yaml", base / "system", 0.0, (0.0, 0.0), 10e-3)
+
+
+def test_a_synthetic_file_gives_the_dipoles_closed_form(three: Path) -> None:
+    """On a dipole's axis at distance r its field is 2 b / r³ along the axis; the gradient
+    along the axis is −6 b / r⁴; the background (Offset) is in T, present at zero current."""
+    coils = CoilSystem.load(three)
+    assert coils.channel_names == ("north", "east", "south")
+    assert coils.has_background
+    maps = ReferenceMaps.load(three / "reference_maps.npz")
+    north = maps["north"]
+    j = np.argmin(np.abs(north.y))  # y = 0: the centre column, x = 0 too
+    i = np.argmin(np.abs(north.x))
+    r = 0.05
+    assert_allclose(north.B[i, j], [0.0, -2 * 2e-7 / r**3], atol=1e-12)
+    # ∂By/∂y on the axis: By = −2b/(0.05 − y)³ → −6b/r⁴
+    assert north.dB[i, j, 1, 1] == pytest.approx(-6 * 2e-7 / r**4, rel=1e-9)
+    bg = maps["background"]
+    assert_allclose(bg.B[i, j], [2 * 2.7e-5 / 0.3**3, 0.0], rtol=1e-9)  # 2 mT along +x
+
+
+def test_models_of_a_system_follow_the_shape_contract(three: Path) -> None:
+    """``load(system=DIR)``: (..., N, 2) and (..., N, 2, 2), G[..., k, l] = ∂B_k/∂x_l (checked
+    by central differences), and the background in the total field and the CasADi form."""
+    lut = LookupTableFieldModel.load(system=three)
+    zernike = ZernikeFieldModel.load(system=three)
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-8e-3, 8e-3, (4, 5, 2))
+    for model in (lut, zernike):
+        B, G = model.unit_field_and_gradient(p)
+        assert B.shape == (4, 5, 3, 2)
+        assert G.shape == (4, 5, 3, 2, 2)
+    h = 1e-6
+    B, G = zernike.unit_field_and_gradient(p)
+    for col in range(2):
+        e = np.zeros(2)
+        e[col] = h
+        fd = (zernike.unit_field(p + e) - zernike.unit_field(p - e)) / (2 * h)
+        assert_allclose(G[..., col], fd, atol=1e-6 * np.max(np.abs(G)))
+    # the fit at the order the R² rule selects explains the maps: R² ≥ 0.99 per channel
+    maps = ReferenceMaps.load(three / "reference_maps.npz")
+    q = maps["east"].points().reshape(-1, 2)
+    fit, ref = zernike.unit_field(q), lut.unit_field(q)
+    for c in range(3):
+        resid = np.sum((fit[:, c] - ref[:, c]) ** 2)
+        assert 1 - resid / np.sum((ref[:, c] - ref[:, c].mean(axis=0)) ** 2) > 0.99
+    currents = np.array([1.0, -2.0, 0.5])
+    B0, _ = lut.background_field_and_gradient(np.zeros(2))
+    assert np.linalg.norm(B0) == pytest.approx(2 * 2.7e-5 / 0.3**3, rel=1e-6)  # 2 mT
+    for model in (lut, zernike):
+        total, _ = model.field_and_gradient(np.zeros(2), currents)
+        unit = model.unit_field(np.zeros(2))
+        own, _ = model.background_field_and_gradient(np.zeros(2))
+        assert_allclose(own, B0, rtol=1e-2, atol=1e-9)  # the Zernike fit of it: 0.1 % here
+        assert_allclose(total, own + currents @ unit, rtol=1e-9, atol=1e-12)
+        f = model.casadi_function()
+        assert_allclose(np.asarray(f(np.zeros(2), currents)[0]).ravel(), total, rtol=1e-6)
+
+
+def test_a_three_channel_system_fits_and_runs_a_closed_loop(three: Path, tmp_path: Path) -> None:
+    """`magrun field fit --system` reports per channel; a protocol with `system:` runs the
+    proposed method and Baseline 2 on it, background included, with exact feedback."""
+    result = CliRunner().invoke(cli, ["field", "fit", "--system", str(three), "--json"])
+    assert result.exit_code == 0, result.output
+    import json
+
+    report = json.loads(result.output)
+    assert set(report["coil_types"]) == {"north", "east", "south", "background"}
+    protocol = tmp_path / "three.yaml"
+    protocol.write_text(
+        textwrap.dedent(
+            f"""\
+            name: three
+            system: {three}
+            robot: micro_magnet
+            workspace: {{kind: open}}
+            trajectory: {{kind: s_curve, size_mm: 8, speed_mm_s: 1}}
+            methods: [proposed, baseline2]
+            trials: 1
+            seed: 2
+            duration_s: 4
+            controller: {{rate_hz: 25.5, latency_ms: 5}}
+            feedback: {{camera: false}}
+            """
+        )
+    )
+    result = CliRunner().invoke(cli, ["run", str(protocol), "--out", str(tmp_path / "rec")])
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((tmp_path / "rec" / "three" / "manifest.json").read_text())
+    for entry in manifest["trials"]:
+        assert entry["status"] == "ok", entry
+        assert entry["rms_position_mm"] < 0.5, entry  # the S is 8 mm across
+    mcap = tmp_path / "rec" / "three" / manifest["trials"][0]["mcap"]
+    from analysis.load import read_recording
+
+    rec = read_recording(mcap)
+    assert list(rec.currents.columns)[-3:] == ["north", "east", "south"]  # the system's names
+
+
+BAD = {
+    "no Coil_List": ("north:\n  Source_List: [a]\n", "no Coil_List: an MPEM calibration"),
+    "a listed coil missing": ("Coil_List: [north]\n", "which the file does not define"),
+    "a listed source missing": (
+        "Coil_List: [north]\nnorth:\n  Source_List: [a]\n",
+        "which the coil does not define",
+    ),
+    "a wrong type": (
+        "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"
+        "    Source_Direction: [0, 0, 1]\n    B_Coeff: [strong]\n",
+        ":7: ",
+    ),
+    "a zero-length direction": (
+        "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"
+        "    Source_Direction: [0, 0, 0]\n    B_Coeff: [1.0e-7]\n",
+        ":6: n.a.Source_Direction: Value error, a source direction of zero length",
+    ),
+    "an order-2 source": (
+        "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"
+        "    Source_Direction: [0, 0, 1]\n    B_Coeff: [1.0e-7, 2.0e-9]\n",
+        "an order-2 source (2 B coefficients): only order 1",
+    ),
+    "A coefficients": (
+        "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"
+        "    Source_Direction: [0, 0, 1]\n    B_Coeff: [1.0e-7]\n    A_Coeff: [0.1]\n",
+        "A coefficients are not implemented",
+    ),
+    "not YAML": ("Coil_List: [n\n", "not valid YAML"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_calibrations_are_refused_by_file_and_line(case: str, tmp_path: Path) -> None:
+    text, message = BAD[case]
+    path = tmp_path / "cal.yaml"
+    path.write_text(text)
+    with pytest.raises(MpemError) as err:
+        MpemModel.load(path)
+    assert str(err.value).startswith(f"{path}")
+    assert message in str(err.value)
+    result = CliRunner().invoke(
+        cli,
+        ["field", "import-mpem", str(path), "--plane-z-mm", "0", "--center-mm", "0", "0",
+         "--half-width-mm", "10", "--out", str(tmp_path / "out")],
+    )  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert message in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_protocol_naming_no_system_folder_is_refused(tmp_path: Path) -> None:
+    protocol = tmp_path / "p.yaml"
+    protocol.write_text(
+        "name: p\nsystem: nowhere\ntrajectory: {kind: s_curve, size_mm: 10, speed_mm_s: 1}\n"
+        "methods: [proposed]\n"
+    )
+    result = CliRunner().invoke(cli, ["validate", str(protocol)])
+    assert result.exit_code == 2
+    assert "p.yaml:2: system" in result.output
+    assert "not a coil-system folder" in result.output
+
+
+def test_the_shipped_octomag_protocol_runs_its_quick_trials(tmp_path: Path) -> None:
+    """protocols/octomag.yaml --quick: the proposed method and Baseline 2 on OctoMag's
+    field, exact feedback at 25.5 Hz, track the scaled S to well under a millimetre."""
+    import json
+
+    result = CliRunner().invoke(
+        cli, ["run", str(ROOT / "protocols" / "octomag.yaml"), "--quick", "--out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((tmp_path / "octomag" / "manifest.json").read_text())
+    assert {e["method"] for e in manifest["trials"]} == {"proposed", "baseline2"}
+    for entry in manifest["trials"]:
+        assert entry["status"] == "ok", entry
+        assert entry["rms_position_mm"] < 0.2, entry
+
+
+def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
+    """Every method on tests/data/protocols/tiny.yaml records the poses and currents of
+    tests/data/paper_rig_reference.npz (written by tests/make_paper_rig_reference.py with
+    magrun as it was before coil systems of N channels). On the machine that wrote it they
+    are equal bit for bit; elsewhere a different CPU may round a sum differently, so the
+    bound is 1e-9 of each quantity's scale, far below any change of behaviour."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from make_paper_rig_reference import record
+
+    want = np.load(ROOT / "tests" / "data" / "paper_rig_reference.npz")
+    got = record(tmp_path)
+    assert set(got) == set(want.files)
+    for key in want.files:
+        a, b = got[key], want[key]
+        assert a.shape == b.shape, key
+        finite = ~np.isnan(b)
+        assert np.array_equal(np.isnan(a), ~finite), key
+        if finite.any():  # the PID predicts nothing: all NaN
+            scale = np.max(np.abs(b[finite])) or 1.0
+            assert np.max(np.abs(a[finite] - b[finite])) <= 1e-9 * scale, key
