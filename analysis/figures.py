@@ -303,38 +303,64 @@ def _violin_condition(trials: pd.DataFrame, swept: str | None) -> dict[str, floa
 
 
 def sweep(data: Dataset, protocol: str) -> Figure:
-    """RMS position and orientation error vs the swept condition, one line per method."""
+    """RMS position and orientation error vs the swept condition, one line per method; one
+    row per value of a second swept condition, if there is one (e.g. rate × noise)."""
     _style()
     trials = data.ok(protocol)
     swept = swept_condition(trials)
     if swept is None:
         raise ValueError(f"protocol {protocol!r}: no condition varies across its trials")
-    violin = _violin_condition(trials, swept)
+    second = next(
+        (
+            c for c in CONDITION_LABELS
+            if c != swept and c in trials and trials[c].dropna().nunique() > 1
+        ),
+        None,
+    )  # fmt: skip
+    rows: list[tuple[str, pd.DataFrame]] = (
+        [("", trials)]
+        if second is None
+        else [
+            (f"{CONDITION_LABELS[second].split(' (')[0]} = {v:g} {_unit(second)}",
+             trials[trials[second] == v])
+            for v in sorted(trials[second].dropna().unique())
+        ]
+    )  # fmt: skip
+    violin = _violin_condition(trials, swept) if second is None else None
     methods = _method_order(trials["method"].unique().tolist())
     palette = _palette(methods)
     ncols = 3 if violin else 2
-    fig = Figure(figsize=(5.2 * ncols, 4.4), layout="constrained")
-    axes = fig.subplots(1, ncols)
-    for ax, value, label, tag in (
-        (axes[0], "rms_position_mm", "RMS position error (mm)", "(a)"),
-        (axes[1], "rms_orientation_deg", "RMS orientation error (deg)", "(b)"),
-    ):
-        sns.lineplot(
-            data=trials, x=swept, y=value, hue="method", hue_order=methods, palette=palette,
-            style="method", style_order=methods, markers=True, dashes=False,
-            errorbar="sd", err_style="bars", err_kws={"capsize": 3}, ax=ax,
-        )  # fmt: skip
-        if trials[value].min() > 0 and trials[value].max() / trials[value].min() > 30:
-            ax.set_yscale("log")
-        ax.set(
-            xlabel=CONDITION_LABELS[swept],
-            ylabel=label,
-            title=f"{tag} {label.split(' (')[0]} vs {CONDITION_LABELS[swept].split(' (')[0]}",
-        )
-        ax.legend(fontsize=8, title=None)
+    fig = Figure(figsize=(5.2 * ncols, 4.4 * len(rows)), layout="constrained")
+    grid = np.atleast_2d(fig.subplots(len(rows), ncols, squeeze=False))
+    for r, (where, subset) in enumerate(rows):
+        for ax, value, label, tag in (
+            (grid[r, 0], "rms_position_mm", "RMS position error (mm)", f"({chr(97 + 2 * r)})"),
+            (grid[r, 1], "rms_orientation_deg", "RMS orientation error (deg)",
+             f"({chr(98 + 2 * r)})"),
+        ):  # fmt: skip
+            sns.lineplot(
+                data=subset, x=swept, y=value, hue="method", hue_order=methods,
+                palette=palette, style="method", style_order=methods, markers=True,
+                dashes=False, errorbar="sd", err_style="bars", err_kws={"capsize": 3}, ax=ax,
+            )  # fmt: skip
+            if subset[value].min() > 0 and subset[value].max() / subset[value].min() > 30:
+                ax.set_yscale("log")
+            what = f"{label.split(' (')[0]} vs {CONDITION_LABELS[swept].split(' (')[0]}"
+            ax.set(
+                xlabel=CONDITION_LABELS[swept],
+                ylabel=label,
+                title=f"{tag} {what}" + (f", {where}" if where else ""),
+            )
+            ax.legend(fontsize=8, title=None)
     if violin:
-        _violin(axes[2], data, protocol, violin, methods, palette)
+        _violin(grid[0, 2], data, protocol, violin, methods, palette)
     return fig
+
+
+def _unit(condition: str) -> str:
+    """A condition's unit, from its label: ``tracking rate (Hz)`` → ``Hz``."""
+    label = CONDITION_LABELS[condition]
+    return label[label.index("(") + 1 : -1] if "(" in label else ""
 
 
 def _violin(

@@ -372,6 +372,12 @@ def assemble(
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver
     try:
+        if tuple(the_rig.channel_names) != coils.channel_names:
+            raise RunError(
+                f"the coil driver drives {', '.join(the_rig.channel_names)}, the protocol's "
+                f"system ({coils.name}) has {', '.join(coils.channel_names)}: set the "
+                "protocol's `system:` to the rig's coil system"
+            )
         # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
         # camera (its observations' poses), the loop's feedback derives from them
         tracker = (

@@ -337,3 +337,28 @@ def test_the_report_gives_overruns_in_percent_and_says_why_welch_is_missing(
     assert overruns.endswith(" %"), overruns
     assert "needs at least two trials of each method" in text
     assert "Welch's t-test (Holm):" not in text
+
+
+def test_a_sweep_of_two_conditions_gets_a_row_per_value_of_the_second(tmp_path: Path) -> None:
+    """Rate × noise in an open workspace: one row per noise level, each row's lines the means
+    of that level's trials only (not averaged over the levels)."""
+    trials = [
+        SynthTrial(
+            "grid", method, conditions={"tracking_rate_hz": rate, "noise_sigma_mm": sigma},
+            offset=(1e-3 * (1 + sigma) * (2 if method == "baseline2" else 1), 0.0, 0.0),
+        )
+        for method in ("proposed", "baseline2")
+        for rate in (3.0, 25.5)
+        for sigma in (0.0, 2.0)
+    ]  # fmt: skip
+    data = analysis.load(write_set(tmp_path, trials))
+    assert figures.figure_kind(data, "grid") == "sweep"
+    fig = figures.sweep(data, "grid")
+    assert len(fig.axes) == 4  # two rows (σ = 0, 2 mm) × position, orientation
+    want = data.ok("grid").groupby(["method", "noise_sigma_mm"])["rms_position_mm"].mean()
+    for ax, sigma in ((fig.axes[0], 0.0), (fig.axes[2], 2.0)):
+        assert f"noise σ = {sigma:g} mm" in ax.get_title()
+        lines = {ln.get_label(): ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+        for method in ("proposed", "baseline2"):
+            _, y = lines[method].get_data()
+            np.testing.assert_allclose(y, want[(method, sigma)], rtol=1e-9)

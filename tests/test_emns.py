@@ -175,8 +175,8 @@ def test_models_of_a_system_follow_the_shape_contract(three: Path) -> None:
 
 
 def test_a_three_channel_system_fits_and_runs_a_closed_loop(three: Path, tmp_path: Path) -> None:
-    """`magrun field fit --system` reports per channel; a protocol with `system:` runs the
-    proposed method and Baseline 2 on it, background included, with exact feedback."""
+    """`magrun field fit --system` reports per channel; a protocol with `system:` runs all
+    six methods on it, background included, with exact feedback."""
     result = CliRunner().invoke(cli, ["field", "fit", "--system", str(three), "--json"])
     assert result.exit_code == 0, result.output
     import json
@@ -192,10 +192,10 @@ def test_a_three_channel_system_fits_and_runs_a_closed_loop(three: Path, tmp_pat
             robot: micro_magnet
             workspace: {{kind: open}}
             trajectory: {{kind: s_curve, size_mm: 8, speed_mm_s: 1}}
-            methods: [proposed, baseline2]
+            methods: [proposed, baseline1, baseline2, baseline3, baseline4, baseline5]
             trials: 1
             seed: 2
-            duration_s: 4
+            duration_s: 3
             controller: {{rate_hz: 25.5, latency_ms: 5}}
             feedback: {{camera: false}}
             """
@@ -315,3 +315,88 @@ def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
         if finite.any():  # the PID predicts nothing: all NaN
             scale = np.max(np.abs(b[finite])) or 1.0
             assert np.max(np.abs(a[finite] - b[finite])) <= 1e-9 * scale, key
+
+
+def test_octomag_on_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: Path) -> None:
+    """`magrun rig-emulator --system systems/octomag`: the hardware path drives OctoMag's
+    8 named channels in real time (1 s trial); with the paper's rig's emulator behind an
+    OctoMag protocol the trial fails before it starts, naming both sets of coils."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_hardware import _serve, _stop
+
+    from magrun.protocol import load_protocol
+    from magrun.runner import run_protocol
+    from magrun.trial import HardwareSpec
+
+    overrides = ("quick.methods=[baseline2]", "quick.duration_s=1")
+    protocol = load_protocol(ROOT / "protocols" / "octomag.yaml", overrides)
+    system = str(ROOT / "systems" / "octomag")
+    proc, url = _serve(tmp_path, "--system", system, "--robot", "micro_magnet", "--no-camera")
+    try:
+        manifest = run_protocol(protocol, tmp_path / "out", quick=True, rig=HardwareSpec(url))
+    finally:
+        _stop(proc)
+    (entry,) = manifest["trials"]
+    assert entry["status"] == "ok", entry["error"]
+    from analysis.load import read_recording
+
+    rec = read_recording(tmp_path / "out" / "octomag" / entry["mcap"])
+    assert list(rec.currents.columns)[-8:] == [f"Coil_{i}" for i in range(8)]
+    proc, url = _serve(tmp_path, "--no-camera")
+    try:
+        manifest = run_protocol(
+            protocol, tmp_path / "other", quick=True, rig=HardwareSpec(url), overwrite=True
+        )
+    finally:
+        _stop(proc)
+    (entry,) = manifest["trials"]
+    assert entry["status"] == "failed"
+    assert "the coil driver drives small_N" in entry["error"]
+    assert "Coil_0" in entry["error"]
+
+
+def test_import_comsol_writes_a_system_folder_a_protocol_runs_on(tmp_path: Path) -> None:
+    """`magrun field import-comsol --out DIR` writes the same kind of folder as the MPEM
+    importer: with the shipped maps exported and imported again, the folder's Zernike
+    model is the shipped one and a protocol naming the folder runs as on the paper's rig."""
+    import json
+
+    from magrun.field.comsol import write_comsol_map
+
+    shipped = ReferenceMaps.load()
+    args = []
+    for name in ("small", "medium", "large"):
+        write_comsol_map(tmp_path / f"{name}.txt", shipped[name], length_unit="mm")
+        args += [f"--{name}", str(tmp_path / f"{name}.txt")]
+    folder = tmp_path / "paper_rig"
+    result = CliRunner().invoke(cli, ["field", "import-comsol", *args, "--out", str(folder)])
+    assert result.exit_code == 0, result.output
+    coils = CoilSystem.load(folder)
+    assert not coils.is_map_system
+    assert coils.channel_names == CoilSystem.load().channel_names
+    shipped_zernike = ZernikeFieldModel.load()
+    zernike = ZernikeFieldModel.load(system=folder)
+    p = np.random.default_rng(5).uniform(-0.04, 0.04, (20, 2))
+    assert_allclose(
+        zernike.unit_field(p), shipped_zernike.unit_field(p), rtol=0,
+        atol=1e-6 * np.max(np.abs(shipped_zernike.unit_field(p))),
+    )  # fmt: skip
+    runs = {}
+    for name, system in (("shipped", None), ("folder", folder)):
+        protocol = tmp_path / f"{name}.yaml"
+        protocol.write_text(
+            f"name: {name}\n" + (f"system: {system}\n" if system else "")
+            + "trajectory: {kind: s_curve, size_mm: 43, speed_mm_s: 3}\nmethods: [baseline2]\n"
+            "trials: 1\nduration_s: 2\nfeedback: {camera: false}\n"
+            "controller: {rate_hz: 25.5, latency_ms: 5}\n"
+        )  # fmt: skip
+        result = CliRunner().invoke(cli, ["run", str(protocol), "--out", str(tmp_path / "r")])
+        assert result.exit_code == 0, result.output
+        runs[name] = json.loads((tmp_path / "r" / name / "manifest.json").read_text())
+    a, b = (runs[k]["trials"][0]["rms_position_mm"] for k in ("shipped", "folder"))
+    # the export holds the field only: the folder's gradients are finite differences of it
+    # (within 5 % of the largest, tests/test_comsol.py), so the plant and Baseline 2's
+    # tables differ that much, and the tracking a little
+    assert b == pytest.approx(a, rel=0.1)

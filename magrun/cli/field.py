@@ -193,9 +193,11 @@ def field_fit(
 )
 @click.option(
     "--out",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=click.Path(path_type=Path),
     required=True,
-    help="Output reference-map .npz, usable with 'magrun field fit --reference'.",
+    help="Output reference-map .npz, usable with 'magrun field fit --reference'; or, not "
+    "ending in .npz, a coil-system folder (the coils file, the maps and their Zernike fit) "
+    "for a protocol's `system:`.",
 )
 def field_import_comsol(
     coils: Path | None,
@@ -219,10 +221,25 @@ def field_import_comsol(
         maps = import_comsol(files, current_a, coils_meta=system.spec.model_dump(mode="json"))
     except ValueError as exc:
         raise InputError(str(exc)) from exc
-    maps.save(out)
-    click.echo(
-        f"wrote {out}: " + ", ".join(f"{k} {m.x.size} x {m.y.size}" for k, m in maps.maps.items())
+    what = ", ".join(f"{k} {m.x.size} x {m.y.size}" for k, m in maps.maps.items())
+    if out.suffix.lower() == ".npz":
+        maps.save(out)
+        click.echo(f"wrote {out}: {what}")
+        return
+    from importlib import resources
+
+    from magrun.field.fitting import write_system_folder
+
+    text = (
+        coils.read_text(encoding="utf-8")
+        if coils is not None
+        else (resources.files("magrun.field") / "data" / "coils.yaml").read_text(encoding="utf-8")
     )
+    try:
+        write_system_folder(out, text, maps)
+    except (KeyError, ValueError) as exc:
+        raise InputError(str(exc)) from exc
+    click.echo(f"wrote the system folder {out}: {what}, and their Zernike fit")
 
 
 @field.command("import-mpem")

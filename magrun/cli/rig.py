@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
-from magrun.cli.common import InputError
+from magrun.cli.common import InputError, load_coils
 
 
 @click.command("rig-emulator")
@@ -18,8 +20,18 @@ from magrun.cli.common import InputError
               help="Serve rendered camera frames (GRAB).")  # fmt: skip
 @click.option("--drop-every", type=click.IntRange(min=0), default=0, show_default=True,
               help="Fail every n-th GRAB, as a camera that drops frames (0: never).")  # fmt: skip
+@click.option(
+    "--system", type=click.Path(exists=True, file_okay=False, path_type=Path),
+    help="A coil-system folder (magrun field import-mpem) to emulate  [default: the paper's rig].",
+)  # fmt: skip
 def rig_emulator(
-    host: str, port: int, robot: str, seed: int, camera: bool, drop_every: int
+    host: str,
+    port: int,
+    robot: str,
+    seed: int,
+    camera: bool,
+    drop_every: int,
+    system: Path | None,
 ) -> None:
     """Serve the simulated plant and camera over the rig's line protocol, in real time.
 
@@ -34,13 +46,18 @@ def rig_emulator(
 
     if robot not in load_robots():
         raise InputError(f"unknown robot {robot!r}; robots.yaml has {', '.join(load_robots())}")
-    rig = SimRig.default(robot=robot, seed=seed, camera=CameraConfig() if camera else None)
+    coils = load_coils(system)
+    rig = SimRig.default(
+        robot=robot, seed=seed, camera=CameraConfig() if camera else None, coils=coils
+    )
     try:
         emulator = RigEmulator(rig, host, port, drop_every=drop_every)
     except OSError as exc:
         raise InputError(f"cannot listen on {host}:{port}: {exc}") from exc
     h, p = emulator.address
-    click.echo(f"rig emulator: {robot}, {len(rig.channel_names)} channels, tcp://{h}:{p}")
+    click.echo(
+        f"rig emulator: {coils.name}, {robot}, {len(rig.channel_names)} channels, tcp://{h}:{p}"
+    )
     try:
         emulator.serve_forever()
     except KeyboardInterrupt:

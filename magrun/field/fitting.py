@@ -157,6 +157,8 @@ def fit_reference(
     }
     figure: dict[str, NDArray[np.float64]] = {}
     for coil_type in coils.fit_types:
+        if coil_type not in reference.maps and coil_type in coils.coil_types:
+            continue  # an undriven coil type without a map (e.g. COMSOL exports of two types)
         fmap = reference[coil_type]
         pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
         by_order = fit_coil_type(coils, reference, coil_type, range(1, max_order + 1))
@@ -261,4 +263,21 @@ def parse_orders(items: list[str]) -> dict[str, int]:
         if not sep or not value.strip().isdigit():
             raise ValueError(f"--order expects TYPE=N (e.g. small=4), got {item!r}")
         out[name.strip()] = int(value)
+    return out
+
+
+def write_system_folder(folder: str | Path, system_yaml: str, maps: ReferenceMaps) -> Path:
+    """Write a coil-system folder: ``system.yaml`` (the text given: a map system's or a
+    coils file of the paper's kind), ``reference_maps.npz`` and the Zernike model fitted to
+    them with the default order selection (``magrun field fit --system`` refits). What
+    ``magrun field import-mpem`` and ``import-comsol --out DIR`` write. Returns the folder.
+    """
+    from magrun.field.coils import MAPS_FILE, SYSTEM_FILE
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    maps.save(out / MAPS_FILE)
+    atomic.write_text(out / SYSTEM_FILE, system_yaml)
+    coils = CoilSystem.load(out)
+    fit_reference(coils, ReferenceMaps.load(out / MAPS_FILE)).save(out)
     return out

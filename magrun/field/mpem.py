@@ -260,9 +260,8 @@ def import_mpem(
 
     import yaml
 
-    from magrun import atomic
-    from magrun.field.coils import MAPS_FILE, SYSTEM_FILE, CoilSystem, MapSystemSpec
-    from magrun.field.fitting import fit_reference
+    from magrun.field.coils import MapSystemSpec
+    from magrun.field.fitting import write_system_folder
     from magrun.field.reference import ReferenceMaps
 
     model = MpemModel.load(calibration)
@@ -293,14 +292,11 @@ def import_mpem(
             "calibrated_box_m": [list(b) for b in model.doc.workspace or ()],
         },
     )
-    folder = Path(out)
-    folder.mkdir(parents=True, exist_ok=True)
     meta = {
         "source": f"MPEM calibration {cal.name} (magrun.field.mpem)",
         "coils": spec.model_dump(mode="json"),
         "units": {"x": "m", "y": "m", "B": "T/A", "dB": "T/(m A)", "background": "T, T/m"},
     }
-    ReferenceMaps(maps=maps, meta=json.loads(json.dumps(meta))).save(folder / MAPS_FILE)
     header = (
         f"# The coil system {spec.name}, imported from {cal.name} by magrun field import-mpem.\n"
         "# Its maps are reference_maps.npz beside this file (one per channel; 'background'\n"
@@ -308,8 +304,6 @@ def import_mpem(
         "# against your amplifiers. Units: mm, A, A/s.\n"
     )
     body = yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False, allow_unicode=True)
-    atomic.write_text(folder / SYSTEM_FILE, header + body)
-    # the Zernike model with the default order selection (magrun field fit --system refits)
-    coils = CoilSystem.load(folder)
-    fit_reference(coils, ReferenceMaps.load(folder / MAPS_FILE)).save(folder)
+    maps_doc = ReferenceMaps(maps=maps, meta=json.loads(json.dumps(meta)))
+    folder = write_system_folder(out, header + body, maps_doc)
     return folder
