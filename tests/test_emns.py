@@ -317,38 +317,37 @@ def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
             assert np.max(np.abs(a[finite] - b[finite])) <= 1e-9 * scale, key
 
 
-def test_octomag_on_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: Path) -> None:
-    """`magrun rig-emulator --system systems/octomag`: the hardware path drives OctoMag's
-    8 named channels in real time (1 s trial); with the paper's rig's emulator behind an
-    OctoMag protocol the trial fails before it starts, naming both sets of coils."""
+def test_octomag_behind_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: Path) -> None:
+    """An emulated OctoMag announces its 8 named channels and limits over the wire and
+    drives them; with the paper's rig's emulator behind an OctoMag protocol the trial
+    fails before it starts, naming both sets of coils."""
     import sys
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from test_hardware import _serve, _stop
+    from test_hardware import _driver, _serve, _stop
 
     from magrun.protocol import load_protocol
+    from magrun.rigs.emulator import RigEmulator
+    from magrun.rigs.sim import SimRig
     from magrun.runner import run_protocol
     from magrun.trial import HardwareSpec
 
+    octomag = CoilSystem.load(ROOT / "systems" / "octomag")
+    with RigEmulator(SimRig.default(robot="micro_magnet", coils=octomag)) as emu:
+        driver = _driver(emu)
+        try:
+            assert driver.channel_names == tuple(f"Coil_{i}" for i in range(8))
+            assert driver.max_current == octomag.max_current == 10.0
+            applied = driver.send(np.r_[1e3, -5.0, np.zeros(6)])
+            assert applied[0] == 10.0  # the system's limit
+            assert applied[1] == -5.0
+        finally:
+            driver.close()
     overrides = ("quick.methods=[baseline2]", "quick.duration_s=1")
     protocol = load_protocol(ROOT / "protocols" / "octomag.yaml", overrides)
-    system = str(ROOT / "systems" / "octomag")
-    proc, url = _serve(tmp_path, "--system", system, "--robot", "micro_magnet", "--no-camera")
-    try:
-        manifest = run_protocol(protocol, tmp_path / "out", quick=True, rig=HardwareSpec(url))
-    finally:
-        _stop(proc)
-    (entry,) = manifest["trials"]
-    assert entry["status"] == "ok", entry["error"]
-    from analysis.load import read_recording
-
-    rec = read_recording(tmp_path / "out" / "octomag" / entry["mcap"])
-    assert list(rec.currents.columns)[-8:] == [f"Coil_{i}" for i in range(8)]
     proc, url = _serve(tmp_path, "--no-camera")
     try:
-        manifest = run_protocol(
-            protocol, tmp_path / "other", quick=True, rig=HardwareSpec(url), overwrite=True
-        )
+        manifest = run_protocol(protocol, tmp_path / "out", quick=True, rig=HardwareSpec(url))
     finally:
         _stop(proc)
     (entry,) = manifest["trials"]
