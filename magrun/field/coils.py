@@ -258,7 +258,13 @@ class CoilSystem:
 
     @property
     def name(self) -> str:
-        return self.spec.name if isinstance(self.spec, MapSystemSpec) else "paper rig"
+        """The map system's name; of the paper kind, its folder's or file's name (the
+        shipped one: "paper rig")."""
+        if isinstance(self.spec, MapSystemSpec):
+            return self.spec.name
+        if self.source.startswith("magrun:"):
+            return "paper rig"
+        return self.folder.name if self.folder is not None else Path(self.source).stem
 
     @property
     def maps_path(self) -> Path | None:
