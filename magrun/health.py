@@ -94,7 +94,7 @@ def prediction_error(
 def trial_health(
     log: Any,
     dt: float,
-    max_current: float,
+    max_current: float | FloatArray,
     free_space: FreeSpace | None = None,
     limits: HealthLimits | None = None,
     predict: Callable[[FloatArray, FloatArray], FloatArray] | None = None,

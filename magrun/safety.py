@@ -37,14 +37,19 @@ from numpy.typing import ArrayLike, NDArray
 FloatArray = NDArray[np.float64]
 
 
+#: a limit: one value for every channel, or one per channel
+Limit = float | FloatArray
+
+
 def clamp_currents(
-    requested: ArrayLike, previous: ArrayLike, max_current: float, max_change: float
+    requested: ArrayLike, previous: ArrayLike, max_current: Limit, max_change: Limit
 ) -> FloatArray:
     """The currents closest to ``requested`` within the limits.
 
     The limits are |I| ≤ max_current and |I − previous| ≤ max_change (a slew limit over one
-    period). Non-finite requests are replaced by 0 A (then limited like any other request), so
-    a NaN from a failed solve can never reach an amplifier. All values in A.
+    period), each one value or one per channel. Non-finite requests are replaced by 0 A (then
+    limited like any other request), so a NaN from a failed solve can never reach an
+    amplifier. All values in A.
     """
     req = np.asarray(requested, dtype=np.float64)
     prev = np.asarray(previous, dtype=np.float64)
@@ -85,8 +90,8 @@ class SafetyLayer:
     def __init__(
         self,
         n_channels: int,
-        max_current: float,
-        max_slew_rate: float,
+        max_current: Limit,
+        max_slew_rate: Limit,
         dt: float,
         config: SafetyConfig | None = None,
         workspace_half_width: float | None = None,
@@ -162,5 +167,8 @@ class SafetyLayer:
 
     def ticks_to_rest(self) -> int:
         """Ticks the ramp to zero takes from the currents now."""
-        peak = float(np.max(np.abs(self.applied), initial=0.0))
-        return math.ceil(peak / self.max_change - 1e-12) if self.max_change > 0 else 0
+        change = np.broadcast_to(np.asarray(self.max_change, dtype=np.float64), self.applied.shape)
+        if not np.all(change > 0):
+            return 0
+        steps = np.abs(self.applied) / change
+        return math.ceil(float(np.max(steps, initial=0.0)) - 1e-12)

@@ -399,3 +399,88 @@ def test_import_comsol_writes_a_system_folder_a_protocol_runs_on(tmp_path: Path)
     # (within 5 % of the largest, tests/test_comsol.py), so the plant and Baseline 2's
     # tables differ that much, and the tracking a little
     assert b == pytest.approx(a, rel=0.1)
+
+
+def _limited_octomag(tmp_path: Path) -> Path:
+    """OctoMag with Coil_0's slew limited to 0.5 A/s and Coil_1's current to 0.2 A (the
+    others: 10 A, 200 A/s; the micro robot's S takes up to ~0.45 A and 0.06–0.18 A per tick
+    on each coil)."""
+    import shutil
+
+    folder = tmp_path / "octomag_limited"
+    shutil.copytree(ROOT / "systems" / "octomag", folder)
+    text = (folder / "system.yaml").read_text()
+    (folder / "system.yaml").write_text(
+        text + "channel_limits:\n  Coil_0: {max_slew_rate_a_per_s: 0.5}\n"
+        "  Coil_1: {max_current_a: 0.2}\n"
+    )
+    return folder
+
+
+def test_per_channel_limits_hold_in_every_method_and_over_the_wire(tmp_path: Path) -> None:
+    """A channel with its own limits: the system's limit vectors, the recorded currents of
+    the NMPC and of a two-layer baseline within them tick by tick (while the limited coil is
+    used up to its limit), and HELLO announcing one limit per channel."""
+    import json
+
+    folder = _limited_octomag(tmp_path)
+    coils = CoilSystem.load(folder)
+    assert_allclose(coils.max_current, [10.0, 0.2] + [10.0] * 6)
+    assert_allclose(coils.max_slew_rate, [0.5] + [200.0] * 7)
+    protocol = tmp_path / "limited.yaml"
+    protocol.write_text(
+        f"name: limited\nsystem: {folder}\nrobot: micro_magnet\n"
+        "trajectory: {kind: s_curve, size_mm: 12, speed_mm_s: 1}\n"
+        "methods: [proposed, baseline3]\ntrials: 1\nduration_s: 4\nfeedback: {camera: false}\n"
+        "controller: {rate_hz: 25.5, latency_ms: 5}\n"
+    )
+    result = CliRunner().invoke(cli, ["run", str(protocol), "--out", str(tmp_path / "r")])
+    assert result.exit_code == 0, result.output
+    manifest = json.loads((tmp_path / "r" / "limited" / "manifest.json").read_text())
+    from magrun.recorded import read_ticks
+
+    dt = 1 / 25.5
+    for entry in manifest["trials"]:
+        assert entry["status"] == "ok", entry
+        I = read_ticks(tmp_path / "r" / "limited" / entry["mcap"]).currents
+        step = np.max(np.abs(np.diff(I[:, 0])))
+        assert step <= 0.5 * dt + 1e-9, entry["method"]
+        assert step > 0.9 * 0.5 * dt, entry["method"]  # the slew limit binds
+        assert np.max(np.abs(I[:, 1])) <= 0.2 + 1e-9, entry["method"]
+        assert np.max(np.abs(I)) <= 10.0 + 1e-9, entry["method"]
+    # the NMPC's own bounds, per channel: |u| ≤ 1 in units of each channel's limit, and a
+    # slew bound per step of each channel's slew over its limit (its cost is per (I/I_max)²:
+    # it leaves a coil of a low current limit nearly idle)
+    from magrun.control.nmpc import NMPC, NMPCConfig
+    from magrun.robot import load_robot
+
+    nmpc = NMPC(ZernikeFieldModel.load(system=folder), load_robot("micro_magnet"), NMPCConfig())
+    assert_allclose(nmpc.problem.du_max, [0.5 * 0.04 / 10, 200 * 0.04 / 0.2] + [0.8] * 6)
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_hardware import _driver
+
+    from magrun.rigs.emulator import RigEmulator
+    from magrun.rigs.sim import SimRig
+
+    with RigEmulator(SimRig.default(robot="micro_magnet", coils=coils)) as emu:
+        driver = _driver(emu)
+        try:
+            assert_allclose(driver.max_current, coils.max_current)
+            assert_allclose(driver.max_slew_rate, coils.max_slew_rate)
+            applied = driver.send(np.full(8, 1e3))
+            assert applied[1] == 0.2  # the emulated amplifier's own limit
+        finally:
+            driver.close()
+
+
+def test_channel_limits_must_name_channels(tmp_path: Path) -> None:
+    folder = _limited_octomag(tmp_path)
+    (folder / "system.yaml").write_text(
+        (folder / "system.yaml").read_text().replace("Coil_0: {max_slew", "Coil_9: {max_slew")
+    )
+    from magrun.field.coils import CoilFileError
+
+    with pytest.raises(CoilFileError, match=r"system.yaml:\d+: channel_limits: .*Coil_9"):
+        CoilSystem.load(folder)

@@ -80,7 +80,7 @@ def allocate(
     lower: FloatArray,
     upper: FloatArray,
     config: AllocationConfig,
-    max_current: float,
+    max_current: float | FloatArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Currents (n,) in A for the desired ``wrench`` (Fx, Fy, τ), and the wrench they give
     (the background's share included)."""
@@ -93,7 +93,7 @@ def allocate(
         [
             A / row_scale[:, None],
             align_w * b_axis[None, :],
-            np.sqrt(config.regularisation) / max_current * np.eye(n),
+            np.diag(np.broadcast_to(np.sqrt(config.regularisation) / max_current, (n,))),
         ]
     )
     rhs = np.concatenate(

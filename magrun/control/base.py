@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from magrun.angles import wrap_angle
 from magrun.freespace import FreeSpace
 from magrun.records import ControllerStatus
-from magrun.safety import clamp_currents
+from magrun.safety import Limit, clamp_currents
 
 FloatArray = NDArray[np.float64]
 
@@ -126,7 +126,8 @@ class Controller:
         The method's parts.
     dt : float
         Control period, s.
-    max_current, max_slew_rate : float
+    max_current, max_slew_rate : float or ndarray
+        A and A/s: one value for every channel, or one per channel.
         Limits, A and A/s; every output obeys them.
     free_space : FreeSpace, optional
         Where the robot's body can be: every estimate is projected into it.
@@ -140,8 +141,8 @@ class Controller:
         estimator: Estimator,
         planner: Planner,
         dt: float,
-        max_current: float,
-        max_slew_rate: float,
+        max_current: Limit,
+        max_slew_rate: Limit,
         n_channels: int,
         free_space: FreeSpace | None = None,
         velocity: str = "difference",

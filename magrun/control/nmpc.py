@@ -270,7 +270,7 @@ class OCP:
         X = ca.SX.sym("X", NX)  # scaled
         u = ca.SX.sym("u", nu)  # I / I_max
         # the field at the stage's start, shared by the dynamics and the heading residual
-        B, G = nmpc.model.casadi_field_and_gradient(X[:2] * 1e-3, u * nmpc.max_current)
+        B, G = nmpc.model.casadi_field_and_gradient(X[:2] * 1e-3, u * _scale(nmpc.max_current))
         Bl, Gl = [B[0], B[1]], [[G[0, 0], G[0, 1]], [G[1, 0], G[1, 1]]]
         X_si = X * scale
         nxt = discrete_step(
@@ -802,3 +802,8 @@ class RTISolver(_Backend):
             return None
         S, _ = self._unpack(self._z)
         return S[:, :NX].copy()
+
+
+def _scale(limit: Any) -> Any:
+    """The current scale in a CasADi product: a number, or a column of one per channel."""
+    return float(limit) if np.ndim(limit) == 0 else ca.DM(np.asarray(limit, dtype=float))

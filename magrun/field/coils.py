@@ -28,15 +28,26 @@ from typing import Any, Literal, Self
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from magrun.yamlio import YamlModelError, parse_yaml_model
+
+FloatArray = NDArray[np.float64]
 
 COIL_TYPES = ("small", "medium", "large")
 DEFAULT_COILS_FILE = "coils.yaml"
 #: a system folder's description and maps (magrun field import-mpem writes them)
 SYSTEM_FILE = "system.yaml"
 MAPS_FILE = "reference_maps.npz"
+#: the drive limits of a coil-system document: what a field map does not depend on
+LIMIT_KEYS = frozenset({"max_current_a", "max_slew_rate_a_per_s", "channel_limits"})
 #: the fewest driven channels a coil system may have
 MIN_CHANNELS = 3
 _CHANNEL_NAME = re.compile(r"[A-Za-z0-9_]+")
@@ -126,7 +137,16 @@ class CoilSystemSpec(BaseModel):
 
     def geometry(self) -> dict[str, object]:
         """The document without the drive limits: what a field map depends on (JSON types)."""
-        return self.model_dump(mode="json", exclude={"max_current_a", "max_slew_rate_a_per_s"})
+        return self.model_dump(mode="json", exclude=set(LIMIT_KEYS))
+
+
+class ChannelLimits(BaseModel):
+    """One channel's own limits (unset: the system's)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_current_a: float | None = Field(default=None, gt=0)
+    max_slew_rate_a_per_s: float | None = Field(default=None, gt=0)
 
 
 class MapSystemSpec(BaseModel):
@@ -142,10 +162,14 @@ class MapSystemSpec(BaseModel):
     workspace_half_width_mm: float = Field(
         gt=0, description="The workspace is the square |x|, |y| <= this around the origin."
     )
-    max_current_a: float = Field(gt=0, description="Per-channel current limit.")
-    max_slew_rate_a_per_s: float = Field(gt=0, description="Per-channel slew limit.")
+    max_current_a: float = Field(gt=0, description="Current limit of every channel.")
+    max_slew_rate_a_per_s: float = Field(gt=0, description="Slew limit of every channel.")
     channels: tuple[str, ...] = Field(
         min_length=MIN_CHANNELS, description="The driven channels, in current-vector order."
+    )
+    channel_limits: dict[str, ChannelLimits] = Field(
+        default_factory=dict,
+        description="Per channel, limits other than the system's (either or both).",
     )
     background: bool = Field(
         default=False, description="The maps hold a 'background' field, present at 0 A."
@@ -169,9 +193,19 @@ class MapSystemSpec(BaseModel):
             raise ValueError("'background' names the background field, not a channel")
         return v
 
+    @field_validator("channel_limits")
+    @classmethod
+    def _limits_of_channels(
+        cls, v: dict[str, ChannelLimits], info: ValidationInfo
+    ) -> dict[str, ChannelLimits]:
+        unknown = sorted(set(v) - set(info.data.get("channels", ())))
+        if unknown:
+            raise ValueError(f"names {unknown}, which are not channels")
+        return v
+
     def geometry(self) -> dict[str, object]:
         """The document without the drive limits: what a field map depends on (JSON types)."""
-        return self.model_dump(mode="json", exclude={"max_current_a", "max_slew_rate_a_per_s"})
+        return self.model_dump(mode="json", exclude=set(LIMIT_KEYS))
 
 
 def rotation_matrix(angle: float) -> NDArray[np.float64]:
@@ -307,14 +341,24 @@ class CoilSystem:
         return self.spec.workspace_half_width_mm * 1e-3
 
     @property
-    def max_current(self) -> float:
-        """Per-coil current limit, A."""
-        return self.spec.max_current_a
+    def max_current(self) -> float | FloatArray:
+        """Current limit, A: one value for every channel, or one per channel (n,) where a
+        map system's ``channel_limits`` set some."""
+        return self._limits("max_current_a")
 
     @property
-    def max_slew_rate(self) -> float:
-        """Per-coil current slew limit of the amplifiers, A/s."""
-        return self.spec.max_slew_rate_a_per_s
+    def max_slew_rate(self) -> float | FloatArray:
+        """Slew limit of the amplifiers, A/s: one value, or one per channel (n,)."""
+        return self._limits("max_slew_rate_a_per_s")
+
+    def _limits(self, key: str) -> float | FloatArray:
+        common = float(getattr(self.spec, key))
+        own = self.spec.channel_limits if isinstance(self.spec, MapSystemSpec) else {}
+        values = [
+            getattr(own[c], key) if c in own and getattr(own[c], key) is not None else common
+            for c in self.channel_names
+        ]
+        return common if all(v == common for v in values) else np.array(values, dtype=float)
 
     @cached_property
     def channels(self) -> tuple[Channel, ...]:

@@ -182,7 +182,9 @@ def fit_reference(
                 }
                 for s in scores
             ],
-            **_diagnostics(Bf, Gf, pts, B, fmap.dB.reshape(-1, 2, 2), coils.max_current),
+            **_diagnostics(
+                Bf, Gf, pts, B, fmap.dB.reshape(-1, 2, 2), float(np.max(coils.max_current))
+            ),
         }
         shape = fmap.B.shape[:2]
         figure[f"{coil_type}_field_mT"] = np.linalg.norm(fmap.B, axis=-1) * 1e3

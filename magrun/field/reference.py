@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from magrun import atomic
-from magrun.field.coils import CoilSystem, CoilTypeSpec
+from magrun.field.coils import LIMIT_KEYS, CoilSystem, CoilTypeSpec
 
 MU0 = 4e-7 * np.pi  # T m / A; magpylib uses the CODATA value, 1e-10 relative difference
 DEFAULT_SHEETS = 12
@@ -110,10 +110,9 @@ class ReferenceMaps:
         without that record are taken as they are.
         """
         made_for = self.meta.get("coils")
-        limits = ("max_current_a", "max_slew_rate_a_per_s")
         if (
             made_for is not None
-            and {k: v for k, v in made_for.items() if k not in limits} != coils.spec.geometry()
+            and {k: v for k, v in made_for.items() if k not in LIMIT_KEYS} != coils.spec.geometry()
         ):
             raise ValueError(
                 f"the reference maps were made for another coil system than {coils.source}; "

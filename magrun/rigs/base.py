@@ -56,8 +56,8 @@ class Rig(ABC):
 
     #: channel names in current-vector order
     channel_names: tuple[str, ...]
-    max_current: float  # A
-    max_slew_rate: float  # A/s
+    max_current: float | FloatArray  # A: one for every channel, or one per channel
+    max_slew_rate: float | FloatArray  # A/s
     #: s from the last observation to the rig's acknowledgement of the currents applied after
     #: it (a hardware rig measures it; NaN in simulation)
     last_latency: float = float("nan")

@@ -23,7 +23,14 @@ from urllib.parse import urlsplit
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magrun.rigs.wire import VERSION, LineConnection, WireError, format_floats, parse_floats
+from magrun.rigs.wire import (
+    VERSION,
+    LineConnection,
+    WireError,
+    format_floats,
+    parse_floats,
+    parse_limits,
+)
 
 FloatArray = NDArray[np.float64]
 ENTRY_POINT_GROUP = "magrun.drivers"
@@ -42,8 +49,8 @@ class CoilDriver(ABC):
     """
 
     channel_names: tuple[str, ...]
-    max_current: float
-    max_slew_rate: float
+    max_current: float | FloatArray  # one per channel where they differ
+    max_slew_rate: float | FloatArray
 
     @classmethod
     @abstractmethod
@@ -107,7 +114,10 @@ class TcpLineDriver(CoilDriver):
             if len(hello) != 6 or hello[0] != "magrun-rig" or int(hello[1]) != VERSION:
                 raise DriverError(f"the rig speaks {' '.join(hello)!r}, not magrun-rig {VERSION}")
             n = int(hello[2])
-            self.max_current, self.max_slew_rate = float(hello[3]), float(hello[4])
+            self.max_current, self.max_slew_rate = (
+                parse_limits(hello[3], n),
+                parse_limits(hello[4], n),
+            )
             self.channel_names = tuple(hello[5].split(","))
             if len(self.channel_names) != n:
                 raise DriverError(f"the rig announced {n} channels but named {hello[5]!r}")

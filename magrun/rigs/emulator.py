@@ -28,7 +28,14 @@ from typing import Any
 import numpy as np
 
 from magrun.rigs.sim import SimRig
-from magrun.rigs.wire import VERSION, LineConnection, WireError, format_floats, parse_floats
+from magrun.rigs.wire import (
+    VERSION,
+    LineConnection,
+    WireError,
+    format_floats,
+    limits_text,
+    parse_floats,
+)
 
 
 class RigEmulator:
@@ -190,8 +197,8 @@ class RigEmulator:
         n = len(rig.channel_names)
         if cmd == "HELLO":
             return (
-                f"OK magrun-rig {VERSION} {n} {rig.max_current!r} {rig.max_slew_rate!r} "
-                + ",".join(rig.channel_names)
+                f"OK magrun-rig {VERSION} {n} {limits_text(rig.max_current)} "
+                f"{limits_text(rig.max_slew_rate)} " + ",".join(rig.channel_names)
             )
         if cmd == "WATCHDOG":
             self.watchdog_s = float(args[0]) * 1e-3

@@ -6,6 +6,8 @@ hardware or ``magrun rig-emulator``, which serves the simulated plant and camera
 
     request                          reply
     HELLO 1                          OK magrun-rig 1 <n> <max A> <max slew A/s> <name,name,…>
+                                     (a limit: one number, or n of them joined by commas,
+                                      one per channel, where the channels' limits differ)
     WATCHDOG <ms>                    OK                       arm the stall watchdog (0: off)
     SET <seq> <I1> … <In>            ACK <seq> <t> <I1> … <In>
     ZERO                             ACK 0 <t> <I1> … <In>    ramp every current to 0 A
@@ -47,6 +49,23 @@ class WireError(ConnectionError):
 
 def format_floats(values: NDArray[np.float64] | list[float]) -> str:
     return " ".join(repr(float(v)) for v in values)
+
+
+def limits_text(limit: float | FloatArray) -> str:
+    """A limit in HELLO's reply: one number, or one per channel joined by commas."""
+    if np.ndim(limit) == 0:
+        return repr(float(limit))
+    return ",".join(repr(float(v)) for v in np.asarray(limit))
+
+
+def parse_limits(text: str, n: int) -> float | FloatArray:
+    """A limit of HELLO's reply (:func:`limits_text`): a float, or an array of ``n``."""
+    parts = text.split(",")
+    if len(parts) == 1:
+        return float(parts[0])
+    if len(parts) != n:
+        raise WireError(f"a limit for each of {n} channels expected, got {text!r}")
+    return parse_floats(parts, "the limits")
 
 
 def parse_floats(fields: list[str], what: str) -> FloatArray:
