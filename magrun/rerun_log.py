@@ -171,7 +171,7 @@ class RerunLog:
             "magrun", recording_id=setup.recording_id or None, send_properties=False
         )
         self._rec.save(str(path), default_blueprint=layout)
-        self._streams = [self._rec]
+        streams = [self._rec]
         #: why the live view stopped, if it did ("" while it streams or when there is none)
         self.live_error = ""
         self._live: Any = None
@@ -180,8 +180,8 @@ class RerunLog:
             if self._live is None:
                 self.live_error = _live_lost(setup.live_view, "no viewer listening")
             else:
-                self._streams.append(self._live)
-        self._log_all = _Fanout(self._streams)
+                streams.append(self._live)
+        self._log_all = _Fanout(streams)
         rec = self._log_all
         rec.send_recording_name(setup.name or recording_name(setup.trial))
         rec.log(

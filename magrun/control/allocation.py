@@ -65,6 +65,8 @@ def background_wrench(
 ) -> tuple[FloatArray, float]:
     """The wrench (3,) the background field exerts at every current (N, N m), and its field
     along the robot's axis (T); zeros where the system has none."""
+    if not model.coils.has_background:
+        return np.zeros(3), 0.0
     B, G = model.background_field_and_gradient(np.asarray(position, dtype=np.float64))
     u = np.array([np.cos(theta), np.sin(theta)])
     m = moment * u

@@ -53,7 +53,6 @@ MIN_CHANNELS = 3
 _CHANNEL_NAME = re.compile(r"[A-Za-z0-9_]+")
 #: the Zernike disk of a map system: the workspace's circumscribed circle, this much larger
 DISK_MARGIN = 1e-3
-_KIND_MAPS = re.compile(r"^kind:\s*['\"]?maps['\"]?\s*(#.*)?$", re.MULTILINE)
 
 
 class CoilTypeSpec(BaseModel):
@@ -208,6 +207,18 @@ class MapSystemSpec(BaseModel):
         return self.model_dump(mode="json", exclude=set(LIMIT_KEYS))
 
 
+def _kind(text: str) -> object:
+    """The document's ``kind`` (None where it has none or is not YAML: the schema of the
+    paper's kind then says what is wrong)."""
+    import yaml
+
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    return doc.get("kind") if isinstance(doc, dict) else None
+
+
 def rotation_matrix(angle: float) -> NDArray[np.float64]:
     """Counter-clockwise rotation by ``angle`` (rad) about +z, shape (2, 2).
 
@@ -276,7 +287,7 @@ class CoilSystem:
             except (OSError, UnicodeDecodeError) as exc:
                 raise CoilFileError(f"{path}: cannot read coil file: {exc}") from exc
         kind: type[CoilSystemSpec] | type[MapSystemSpec] = (
-            MapSystemSpec if _KIND_MAPS.search(text) else CoilSystemSpec
+            MapSystemSpec if _kind(text) == "maps" else CoilSystemSpec
         )
         try:
             spec = parse_yaml_model(text, kind, source)

@@ -148,11 +148,11 @@ class PlanarFieldModel(ABC):
                 f"currents must end in {self.coils.n_channels} channels, got shape {I.shape}"
             )
         B, G = self.unit_field_and_gradient(positions)
+        total = np.einsum("...ck,...c->...k", B, I), np.einsum("...ckl,...c->...kl", G, I)
+        if not self.coils.has_background:
+            return total
         B0, G0 = self.background_field_and_gradient(positions)
-        return (
-            B0 + np.einsum("...ck,...c->...k", B, I),
-            G0 + np.einsum("...ckl,...c->...kl", G, I),
-        )
+        return B0 + total[0], G0 + total[1]
 
     def casadi_field_and_gradient(self, position: Expr, currents: Expr) -> tuple[Expr, Expr]:
         """Field (2×1) and gradient (2×2) as CasADi expressions of a position and currents,

@@ -44,6 +44,23 @@ class MpemError(ValueError):
     """An MPEM file that cannot be read or used; the message names the file (and line)."""
 
 
+def _listed(
+    data: dict[str, Any], key: str, words: tuple[str, str, str]
+) -> tuple[Any, dict[str, Any]]:
+    """``data[key]`` (a list of names, as written) and the entries it names; ``words``: who
+    lists what, and what holds the entries, for the messages."""
+    owner, items, holder = words
+    if key not in data:
+        raise ValueError(f"no {key}: {owner} lists its {items} under {key}")
+    names = data[key]
+    if not isinstance(names, list):
+        return names, {}  # the field's own validation says what is wrong
+    missing = [n for n in names if n not in data]
+    if missing:
+        raise ValueError(f"{key} names {missing}, which the {holder} does not define")
+    return names, {n: data[n] for n in names}
+
+
 class MpemSource(BaseModel):
     """One source of a coil: order 1 is a point dipole."""
 
@@ -100,15 +117,8 @@ class MpemCoil(BaseModel):
     def _gather(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             return data
-        if "Source_List" not in data:
-            raise ValueError("no Source_List: a coil lists its sources under Source_List")
-        names = data["Source_List"]
-        if not isinstance(names, list):
-            return {"Source_List": names, "sources": {}}
-        missing = [n for n in names if n not in data]
-        if missing:
-            raise ValueError(f"Source_List names {missing}, which the coil does not define")
-        return {"Source_List": names, "sources": {n: data[n] for n in names}}
+        names, sources = _listed(data, "Source_List", ("a coil", "sources", "coil"))
+        return {"Source_List": names, "sources": sources}
 
 
 class MpemFile(BaseModel):
@@ -126,19 +136,12 @@ class MpemFile(BaseModel):
     def _gather(cls, data: Any) -> Any:
         if not isinstance(data, dict):
             raise ValueError("an MPEM calibration is a mapping with a Coil_List")
-        if "Coil_List" not in data:
-            raise ValueError("no Coil_List: an MPEM calibration lists its coils under Coil_List")
-        names = data["Coil_List"]
-        if not isinstance(names, list):
-            return {"Coil_List": names, "coils": {}}
-        missing = [n for n in names if n not in data]
-        if missing:
-            raise ValueError(f"Coil_List names {missing}, which the file does not define")
-        if len(set(map(str, names))) != len(names):
+        names, coils = _listed(data, "Coil_List", ("an MPEM calibration", "coils", "file"))
+        if isinstance(names, list) and len(set(map(str, names))) != len(names):
             raise ValueError(f"Coil_List names a coil twice: {names}")
         return {
             "Coil_List": names,
-            "coils": {n: data[n] for n in names},
+            "coils": coils,
             "system_name": str(data.get("System_Name") or ""),
             "workspace": data.get("Workspace_Dimensions"),
         }
