@@ -25,6 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import lsq_linear
 
 FloatArray = NDArray[np.float64]
+#: DAQP's tolerance on the bounds' violation
+PRIMAL_TOL = 1e-10
 
 
 def bvls(M: FloatArray, r: FloatArray, lo: ArrayLike, hi: ArrayLike) -> FloatArray:
@@ -40,9 +42,14 @@ class BoxLeastSquares:
 
     def __init__(self, n: int) -> None:
         self.n = n
+        # DAQP's default primal tolerance (1e-6) lets it stop with bounds violated by up to
+        # that much; clipped back into the box, such a point is not the optimum (KKT residual
+        # ~1e-5 on 7 of 2000 random 60-variable problems); at 1e-10 every one was optimal to
+        # 1e-11 at no measurable cost (tests/test_qp.py)
         self._solver = ca.conic(
-            "box_lsq", "daqp", {"h": ca.Sparsity.dense(n, n)}, {"error_on_fail": False}
-        )
+            "box_lsq", "daqp", {"h": ca.Sparsity.dense(n, n)},
+            {"error_on_fail": False, "daqp": {"primal_tol": PRIMAL_TOL}},
+        )  # fmt: skip
         self.fallbacks = 0
 
     def __call__(self, M: FloatArray, r: FloatArray, lo: ArrayLike, hi: ArrayLike) -> FloatArray:
