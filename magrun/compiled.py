@@ -65,14 +65,18 @@ def _warn_once(message: str) -> None:
 
 
 def shared_library(
-    name: str, write_source: Callable[[Path], Path], optimisation: str = "-O2"
+    name: str,
+    write_source: Callable[[Path], Path],
+    optimisation: str = "-O2",
+    link: tuple[str, ...] = (),
 ) -> Path | None:
     """Compile the C file that ``write_source(folder)`` writes; the cached ``.so`` or None.
 
     ``write_source`` generates the code into a scratch folder and returns the file's path; the
     library is keyed on that file's content (see the module doc). ``optimisation`` is the
     compiler's -O flag: -O1 compiles large generated files (an NLP's Hessian) several times
-    faster than -O2.
+    faster than -O2. ``link``: further compiler arguments after the source (include folders,
+    libraries), part of the key.
     """
     if not compilation_enabled():
         _warn_once(f"no C compiler ({CC}) or MAGRUN_COMPILE=0: CasADi functions run uncompiled")
@@ -82,7 +86,7 @@ def shared_library(
         code = source.read_bytes()
         command = [CC, optimisation, *CFLAGS]
         key = hashlib.sha256(
-            code + " ".join(command).encode() + ca.CasadiMeta.version().encode()
+            code + " ".join([*command, *link]).encode() + ca.CasadiMeta.version().encode()
         ).hexdigest()[:20]
         folder = cache_dir() / "casadi"
         target = folder / f"{name}-{key}.so"
@@ -94,7 +98,7 @@ def shared_library(
             if target.exists():
                 return target
             partial = folder / f".{name}-{key}.{os.getpid()}.so"
-            cmd = [*command, str(source), "-o", str(partial), "-lm"]
+            cmd = [*command, str(source), "-o", str(partial), *link, "-lm"]
             done = subprocess.run(cmd, capture_output=True, text=True, check=False)
             if done.returncode != 0:
                 partial.unlink(missing_ok=True)

@@ -93,6 +93,7 @@ from numpy.typing import NDArray
 
 from magrun.compiled import compiled, shared_library
 from magrun.control.base import Plan, Planner
+from magrun.control.rti_kernel import RTIKernel, build_kernel
 from magrun.control.symbolic import CASADI_OPS
 from magrun.field.model import PlanarFieldModel
 from magrun.freespace import INACTIVE, FreeSpace
@@ -149,6 +150,9 @@ class NMPCConfig:
     corrective_iterations: int = 2
     corrective_sag: float = 0.1
     hpipm: dict[str, Any] = field(default_factory=dict)
+    # RTI: the QP through magrun's compiled kernel around HPIPM ("direct", falling back to
+    # "casadi" where it cannot be built) or through CasADi's HPIPM interface ("casadi")
+    rti_qp: Literal["direct", "casadi"] = "direct"
     # IPOPT
     max_iter: int = 100
     tol: float = 1e-6
@@ -619,6 +623,11 @@ class RTISolver(_Backend):
         )  # fmt: skip
         rN = ca.vertcat(ocp.pose_residual["terminal"](X, ref), ocp.corridor(X, ref))
         terminal = ca.Function("rti_terminal", [s, ref], [rN, ca.jacobian(rN, s)])
+        self.kernel = self._kernel(stage, terminal, r.shape[0], rN.shape[0])
+        self.robust_retries = 0
+        self.reset()
+        if self.kernel is not None:
+            return
 
         # the whole QP, in MX over the stage function mapped along the horizon
         z = ca.MX.sym("z", self.nz)
@@ -686,8 +695,32 @@ class RTISolver(_Backend):
         fast = {**opts, "hpipm": {"mode": "speed_abs", **opts["hpipm"]}}
         self.qp_solver = ca.conic("rti_hpipm", "hpipm", structure, fast)
         self.qp_robust = ca.conic("rti_hpipm_robust", "hpipm", structure, opts)
-        self.robust_retries = 0
-        self.reset()
+
+    #: HPIPM's options that the kernel takes from ``NMPCConfig.hpipm`` (CasADi's names)
+    KERNEL_TOLERANCES = ("res_g_max", "res_b_max", "res_d_max", "res_m_max")
+
+    def _kernel(
+        self, stage: ca.Function, terminal: ca.Function, n_r: int, n_rt: int
+    ) -> RTIKernel | None:
+        """The compiled kernel (:mod:`magrun.control.rti_kernel`), or None for CasADi's QP."""
+        ocp, cfg = self.ocp, self.ocp.config
+        if cfg.rti_qp != "direct" or not cfg.compile:
+            return None
+        nu = ocp.nu
+        dims = {"N": ocp.N, "NS": self.ns, "NU": nu, "NR": n_r, "NRT": n_rt, "NP": NP,
+                "NB": 2 + nu}  # fmt: skip
+        heading = ocp.heading_residual if ocp.has_heading else None
+        library = build_kernel(stage, terminal, heading, dims)
+        if library is None:
+            return None
+        hp = {"iter_max": 50, **{k: 1e-8 for k in self.KERNEL_TOLERANCES}, **cfg.hpipm}
+        bounded = np.concatenate([[0, 1], NX + np.arange(nu)])
+        upper = np.concatenate([[ocp.pos_max] * 2, np.ones(nu)])
+        tolerances = tuple(float(hp[k]) for k in self.KERNEL_TOLERANCES)
+        return RTIKernel(
+            library, dims, np.broadcast_to(ocp.du_max, (nu,)), bounded, -upper, upper,
+            tolerances, int(hp["iter_max"]),  # type: ignore[arg-type]
+        )  # fmt: skip
 
     def _split(self, z: Any) -> tuple[Any, Any]:
         """(states s₁ … s_N as columns, controls v₀ … v_{N−1} as columns) of a QP vector."""
@@ -725,8 +758,79 @@ class RTISolver(_Backend):
 
     def reset(self) -> None:
         self._z: FloatArray | None = None
+        self._has_plan = False  # the kernel holds a plan
+        self._aligned = False  # ... already moved on to the coming tick
+        self._prepared: tuple[FloatArray, FloatArray] | None = None  # (par, s_lin)
+
+    def prepare(self, s_lin: FloatArray, par: FloatArray) -> bool:
+        """The preparation phase for the coming tick (kernel only): the plan moved on one
+        stage and linearised there, stage 0 at the predicted start ``s_lin`` = (x, u_prev),
+        scaled. False where there is nothing to prepare (no plan yet, or CasADi's QP)."""
+        k = self.kernel
+        if k is None or not self._has_plan:
+            return False
+        if not self._aligned:
+            k.shift()
+            self._aligned = True
+        if not k.prepare(par, s_lin):
+            self._prepared = None
+            return False
+        self._prepared = (par[:, 1:].copy(), np.array(s_lin, dtype=np.float64))
+        return True
+
+    def _solve_kernel(self, k: RTIKernel, x0: FloatArray, u_prev: FloatArray,
+                      par: FloatArray) -> SolveResult:  # fmt: skip
+        cfg, nu = self.ocp.config, self.ocp.nu
+        s0 = np.concatenate([x0, u_prev])
+        prepared = self._prepared
+        self._prepared = None
+        # stage 0's parameters do not reach the QP (its residuals that use them depend on
+        # X_0 alone, which is given), so a preparation holds when the others and u_prev agree
+        ready = (
+            prepared is not None
+            and np.array_equal(prepared[1][NX:], u_prev)
+            and np.array_equal(prepared[0], par[:, 1:])
+        )
+        if not self._has_plan:  # cold: hold the currents, rest at x0, iterate to convergence
+            k.set_iterate(np.tile(s0, (self.ocp.N, 1)), np.zeros((self.ocp.N, nu)))
+            budget = max(cfg.first_tick_iterations, cfg.iterations)
+            ready = False
+        else:
+            if not self._aligned:
+                k.shift()
+            budget = cfg.iterations
+        self._aligned = True
+        iterations, corrections, status = 0, cfg.corrective_iterations, 0
+        info = np.zeros(5)
+        while iterations < budget:
+            if not ready and not k.prepare(par, s0):
+                return self._failed(iterations + 1, "non-finite QP")
+            ready = False
+            status, info = k.feedback(s0)
+            iterations += 1
+            if status != 0:
+                return self._failed(iterations, f"HPIPM status {status}")
+            if info[0] < cfg.step_tolerance:
+                break
+            if (
+                iterations == budget and corrections > 0 and self.ocp.has_heading
+                and info[3] < -cfg.corrective_sag * self.ocp.heading_scale
+            ):  # fmt: skip
+                corrections -= 1
+                budget += 1
+        self.robust_retries = k.retries
+        self._has_plan, self._aligned = True, False
+        S, V = k.iterate()
+        return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
+
+    def _failed(self, iterations: int, message: str) -> SolveResult:
+        """A kernel tick that failed: without a plan before it, none now."""
+        self.robust_retries = self.kernel.retries if self.kernel is not None else 0
+        return SolveResult(False, np.zeros(self.ocp.nu), iterations, message)
 
     def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
+        if self.kernel is not None:
+            return self._solve_kernel(self.kernel, x0, u_prev, par)
         cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
         refs = par
@@ -785,23 +889,34 @@ class RTISolver(_Backend):
         return self._pack(np.vstack([S[1:], S[-1:]]), np.vstack([V[1:], np.zeros_like(V[:1])]))
 
     def fallback(self) -> FloatArray | None:
+        if self.kernel is not None:
+            if not self._has_plan:
+                return None
+            # the failed tick moved the plan on already (or a preparation did)
+            if not self._aligned:
+                self.kernel.shift()
+            self._aligned = False
+            S, _ = self.kernel.iterate()
+            return S[0, NX:].copy()
         if self._z is None:
             return None
         self._z = self._shifted(self._z)
         S, _ = self._unpack(self._z)
         return S[0, NX:].copy()  # u₀ of the shifted plan = u₁ of the old one
 
+    def _plan_states(self) -> FloatArray | None:
+        """s₁ … s_N of the last plan, (N, ns)."""
+        if self.kernel is not None:
+            return self.kernel.iterate()[0] if self._has_plan else None
+        return None if self._z is None else self._unpack(self._z)[0]
+
     def currents_plan(self) -> FloatArray | None:
-        if self._z is None:
-            return None
-        S, _ = self._unpack(self._z)
-        return S[:, NX:].copy()  # s_{k+1} holds u_k
+        S = self._plan_states()
+        return None if S is None else S[:, NX:].copy()  # s_{k+1} holds u_k
 
     def states_plan(self) -> FloatArray | None:
-        if self._z is None:
-            return None
-        S, _ = self._unpack(self._z)
-        return S[:, :NX].copy()
+        S = self._plan_states()
+        return None if S is None else S[:, :NX].copy()
 
 
 def _scale(limit: Any) -> Any:

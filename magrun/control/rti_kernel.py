@@ -1,0 +1,177 @@
+"""The RTI's per-tick work compiled to C around HPIPM (``rti_hpipm.c``).
+
+One shared library holds the CasADi-generated stage functions and a small C driver that
+linearises every stage, fills HPIPM's stage-wise QP directly (no global sparse matrix) and
+solves it, with HPIPM's structures allocated once. Python calls it twice a tick through
+ctypes: :meth:`RTIKernel.prepare` (linearise around the shifted plan) and
+:meth:`RTIKernel.feedback` (embed the measured start, solve, step). HPIPM and BLASFEO are the
+builds that ship inside the CasADi wheel (its ``include`` folder and shared libraries).
+
+:func:`build_kernel` returns None where that cannot be built (no compiler, headers or
+libraries missing, ``MAGRUN_COMPILE=0``); the NMPC then uses CasADi's HPIPM interface on the
+same QP (:class:`magrun.control.nmpc.RTISolver`), slower and the same to the solver's
+tolerance.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from numpy.typing import NDArray
+
+from magrun.compiled import shared_library
+
+FloatArray = NDArray[np.float64]
+
+_DRIVER = Path(__file__).with_name("rti_hpipm.c")
+_double_p = ctypes.POINTER(ctypes.c_double)
+_int_p = ctypes.POINTER(ctypes.c_int)
+
+
+def casadi_folder() -> Path:
+    """Where the CasADi wheel keeps its headers and HPIPM / BLASFEO libraries."""
+    return Path(ca.__file__).parent
+
+
+def _link_args() -> tuple[str, ...] | None:
+    lib = casadi_folder()
+    if not (lib / "include" / "hpipm_d_ocp_qp_ipm.h").exists():
+        return None
+    if not (lib / "libhpipm.so").exists() or not (lib / "libblasfeo.so").exists():
+        return None
+    return (f"-I{lib / 'include'}", f"-L{lib}", f"-Wl,-rpath,{lib}", "-Wl,-Bsymbolic",
+            "-lhpipm", "-lblasfeo")  # fmt: skip
+
+
+def build_kernel(
+    stage: ca.Function,
+    terminal: ca.Function,
+    heading: ca.Function | None,
+    dims: dict[str, int],
+    name: str = "nmpc_rti",
+) -> Path | None:
+    """Generate and compile the kernel; the library's path, or None (module doc).
+
+    ``stage(s, v, par)`` → (s_next, A, B, r, Js, Jv), ``terminal(s, par)`` → (rN, JN),
+    ``heading(X, u)`` → the heading residual (one row), all outputs dense; ``dims``: N, NS,
+    NU, NR, NRT, NP, NB.
+    """
+    link = _link_args()
+    if link is None:
+        return None
+    X = ca.SX.sym("X", dims["NS"] - dims["NU"])
+    u = ca.SX.sym("u", dims["NU"])
+    if heading is None:
+        heading_fn = ca.Function("rti_heading", [X, u], [ca.SX.zeros(1)])
+    else:
+        heading_fn = ca.Function("rti_heading", [X, u], [heading(X, u)])
+    functions = [_dense("rti_stage", stage), _dense("rti_terminal", terminal), heading_fn]
+
+    def write(folder: Path) -> Path:
+        cg = ca.CodeGenerator("rti_generated.c", {"with_header": False})
+        for f in functions:
+            cg.add(f)
+        generated = Path(cg.generate(str(folder) + os.sep)).read_text()
+        defines = "".join(f"#define RTI_{k} {v}\n" for k, v in sorted(dims.items()))
+        defines += f"#define RTI_HEADING {int(heading is not None)}\n"
+        target = folder / f"{name}.c"
+        target.write_text(generated + "\n" + defines + _DRIVER.read_text())
+        return target
+
+    return shared_library(name, write, optimisation="-O2", link=link)
+
+
+class RTIKernel:
+    """The compiled kernel's state for one controller: HPIPM's structures and the iterate."""
+
+    def __init__(
+        self,
+        library: Path,
+        dims: dict[str, int],
+        du_max: FloatArray,
+        bounded: FloatArray,
+        lower: FloatArray,
+        upper: FloatArray,
+        tolerances: tuple[float, float, float, float],
+        iter_max: int,
+    ) -> None:
+        self.N, self.ns, self.nu = dims["N"], dims["NS"], dims["NU"]
+        lib = ctypes.CDLL(str(library))
+        lib.rti_create.restype = ctypes.c_void_p
+        lib.rti_create.argtypes = [_double_p, _int_p, _double_p, _double_p, _double_p,
+                                   ctypes.c_int]  # fmt: skip
+        lib.rti_free.argtypes = [ctypes.c_void_p]
+        for f in ("rti_set_iterate", "rti_get_iterate"):
+            getattr(lib, f).argtypes = [ctypes.c_void_p, _double_p, _double_p]
+        lib.rti_shift.argtypes = [ctypes.c_void_p]
+        lib.rti_prepare.argtypes = [ctypes.c_void_p, _double_p, _double_p]
+        lib.rti_feedback.argtypes = [ctypes.c_void_p, _double_p, _double_p]
+        lib.rti_retries.argtypes = [ctypes.c_void_p]
+        self._lib = lib
+        arrays = [
+            np.ascontiguousarray(np.broadcast_to(du_max, (self.nu,)), dtype=np.float64),
+            np.ascontiguousarray(bounded, dtype=np.intc),
+            np.ascontiguousarray(lower, dtype=np.float64),
+            np.ascontiguousarray(upper, dtype=np.float64),
+            np.ascontiguousarray(tolerances, dtype=np.float64),
+        ]
+        handle = lib.rti_create(*(_ptr(a) for a in arrays), int(iter_max))
+        if not handle:
+            raise MemoryError("the NMPC's QP kernel could not allocate its memory")
+        self._handle = ctypes.c_void_p(handle)
+        self._info = np.zeros(5)
+        self._info_p = _ptr(self._info)
+
+    def __del__(self) -> None:
+        handle = getattr(self, "_handle", None)
+        if handle is not None:
+            self._lib.rti_free(handle)
+            self._handle = None
+
+    def set_iterate(self, S: FloatArray, V: FloatArray) -> None:
+        S = np.ascontiguousarray(S, dtype=np.float64)
+        V = np.ascontiguousarray(V, dtype=np.float64)
+        assert S.shape == (self.N, self.ns) and V.shape == (self.N, self.nu)
+        self._lib.rti_set_iterate(self._handle, _ptr(S), _ptr(V))
+
+    def iterate(self) -> tuple[FloatArray, FloatArray]:
+        """The plan: states s₁ … s_N (N, ns) and steps v₀ … v_{N−1} (N, nu)."""
+        S, V = np.empty((self.N, self.ns)), np.empty((self.N, self.nu))
+        self._lib.rti_get_iterate(self._handle, _ptr(S), _ptr(V))
+        return S, V
+
+    def shift(self) -> None:
+        self._lib.rti_shift(self._handle)
+
+    def prepare(self, par: FloatArray, s_lin: FloatArray) -> bool:
+        """Linearise around the iterate, stage 0 at ``s_lin``; False where not finite.
+        ``par``: the (NP, N+1) stage parameters."""
+        p = np.asfortranarray(par, dtype=np.float64)
+        s = np.ascontiguousarray(s_lin, dtype=np.float64)
+        return self._lib.rti_prepare(self._handle, _ptr(p), _ptr(s)) == 0
+
+    def feedback(self, s0: FloatArray) -> tuple[int, FloatArray]:
+        """Embed the start ``s0``, solve, step: HPIPM's status (0: solved, the iterate moved)
+        and [max |step|, QP iterations, status, heading residual at stage 0, robust retry]."""
+        s = np.ascontiguousarray(s0, dtype=np.float64)
+        status = self._lib.rti_feedback(self._handle, _ptr(s), self._info_p)
+        return int(status), self._info
+
+    @property
+    def retries(self) -> int:
+        return int(self._lib.rti_retries(self._handle))
+
+
+def _dense(name: str, f: ca.Function) -> ca.Function:
+    """``f`` renamed, with dense outputs (the C driver reads them column-major)."""
+    args = f.sx_in()
+    return ca.Function(name, args, [ca.densify(o) for o in f.call(args)], {"cse": True})
+
+
+def _ptr(a: np.ndarray) -> Any:
+    return a.ctypes.data_as(_int_p if a.dtype == np.intc else _double_p)
