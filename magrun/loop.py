@@ -225,6 +225,8 @@ def run_trial(
         if on_tick is not None:
             on_tick(tick)
         prediction = out.predicted
+        # the next tick's work that needs no measurement, while the plant runs on
+        controller.prepare(reference.pose(obs.t + period + offsets))
         rest = period - charged
         if rest > 0:
             rig.advance(rest)

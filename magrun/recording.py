@@ -129,6 +129,7 @@ def _magrun_messages() -> tuple[type[Message], type[Message]]:
             ("tracking_lost", T.TYPE_BOOL, one),
             ("latency", T.TYPE_DOUBLE, one),  # s, frame to the rig's ack (hardware; else NaN)
             ("safety_stop", T.TYPE_STRING, one),  # why the safety layer stops ("": running)
+            ("prepare_time", T.TYPE_DOUBLE, one),  # s, before the measurement (solve_time after)
         ],
     )
     pool = descriptor_pool.Default()
@@ -437,6 +438,7 @@ class TrialRecorder(Recorder):
             tracking_lost=tick.frame is not None and tick.tracked is None,
             latency=tick.latency,
             safety_stop=tick.safety_stop,
+            prepare_time=s.prepare_time,
         )
         _stamp(st, t_ns)
         self._put("/controller/status", st, t_ns)

@@ -34,6 +34,11 @@ class ControllerStatus:
         plan's next currents) or ``"zero"``.
     message : str
         The solver's return status.
+    prepare_time : float
+        Wall time, s, of the planner's preparation for this tick, done before the tick's
+        measurement (:meth:`Planner.prepare`; 0 where there was none). ``solve_time`` is then
+        the feedback phase alone: the planner's share of the delay from measurement to
+        currents.
     """
 
     solve_time: float
@@ -41,6 +46,7 @@ class ControllerStatus:
     success: bool = True
     fallback: str = ""
     message: str = ""
+    prepare_time: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -145,25 +145,42 @@ def _problem(kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return state, ref, previous
 
 
-def _solve(model, robot, solver: str, kind: str) -> tuple[NMPC, np.ndarray]:
-    cfg = NMPCConfig(solver=solver, tol=1e-10, **CONVERGE)  # type: ignore[arg-type]
+def _solve(model, robot, solver: str, kind: str, qp: str = "direct") -> tuple[NMPC, np.ndarray]:
+    cfg = NMPCConfig(solver=solver, tol=1e-10, rti_qp=qp, **CONVERGE)  # type: ignore[arg-type]
     if solver == "ipopt":
         cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
     nmpc = NMPC(model, robot, cfg)
     state, ref, previous = _problem(kind)
     plan = nmpc.plan(state, ref, previous)
     assert plan.status.success, plan.status
+    if solver == "rti":  # the QP path asked for, where it can be built
+        assert (nmpc.backend.kernel is not None) == (qp == "direct" and compiled_mod.
+                                                     compilation_enabled())  # fmt: skip
     currents = nmpc.backend.currents_plan()
     assert currents is not None
     assert_allclose(currents[0] * nmpc.max_current, plan.currents, atol=1e-12)
     return nmpc, currents
 
 
+_IPOPT: dict[str, tuple[NMPC, np.ndarray]] = {}
+
+
+def _ipopt(model, robot, kind: str) -> tuple[NMPC, np.ndarray]:
+    """The reference's optimum of a fixed problem (solved once per session)."""
+    if kind not in _IPOPT:
+        _IPOPT[kind] = _solve(model, robot, "ipopt", kind)
+    return _IPOPT[kind]
+
+
+@pytest.mark.parametrize("qp", ["direct", "casadi"])
 @pytest.mark.parametrize("kind", ["track", "slew", "wall"])
-def test_rti_converges_to_the_ipopt_optimum(zernike_model, magnet_robot, kind: str) -> None:
-    """Whole current plans agree within 1e-4 of the limit, objectives within 1e-6 relative."""
-    rti, u_rti = _solve(zernike_model, magnet_robot, "rti", kind)
-    ipopt, u_ipopt = _solve(zernike_model, magnet_robot, "ipopt", kind)
+def test_rti_converges_to_the_ipopt_optimum(
+    zernike_model, magnet_robot, kind: str, qp: str
+) -> None:
+    """Whole current plans agree within 1e-4 of the limit, objectives within 1e-6 relative,
+    with the QPs through magrun's compiled HPIPM kernel and through CasADi's interface."""
+    rti, u_rti = _solve(zernike_model, magnet_robot, "rti", kind, qp)
+    ipopt, u_ipopt = _ipopt(zernike_model, magnet_robot, kind)
     assert_allclose(u_rti, u_ipopt, atol=1e-4)
     state, ref, previous = _problem(kind)
     x0 = state.copy()
@@ -175,8 +192,9 @@ def test_rti_converges_to_the_ipopt_optimum(zernike_model, magnet_robot, kind: s
         du = np.diff(np.vstack([previous / rti.max_current, u_rti]), axis=0)
         assert np.max(np.abs(du)) == pytest.approx(rti.problem.du_max, abs=1e-6)
     if kind == "wall":
-        S, _ = rti.backend._unpack(rti.backend._z)
-        assert np.max(S[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
+        X = rti.backend.states_plan()
+        assert X is not None
+        assert np.max(X[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
 
 
 class _FailingQP:
@@ -192,18 +210,22 @@ class _FailingQP:
         return {"success": False, "return_status": "forced failure"}
 
 
+@pytest.mark.parametrize("qp", ["direct", "casadi"])
 def test_a_qp_the_fast_preset_fails_is_solved_by_the_robust_one(
-    zernike_model, magnet_robot
+    zernike_model, magnet_robot, qp: str
 ) -> None:
     """Every QP handed to the robust preset after the fast one failed: the same plan (the SQP
     iterations end ~2e-6 apart in normalised current, against the 1e-4 both keep to IPOPT's
     optimum above), one retry per QP, and no failure reported."""
-    fast, u_fast = _solve(zernike_model, magnet_robot, "rti", "slew")
+    fast, u_fast = _solve(zernike_model, magnet_robot, "rti", "slew", qp)
     assert fast.backend.robust_retries == 0  # this problem needs no retry
 
-    cfg = NMPCConfig(solver="rti", tol=1e-10, **CONVERGE)  # type: ignore[arg-type]
+    cfg = NMPCConfig(solver="rti", tol=1e-10, rti_qp=qp, **CONVERGE)  # type: ignore[arg-type]
     nmpc = NMPC(zernike_model, magnet_robot, cfg)
-    nmpc.backend.qp_solver = _FailingQP(nmpc.backend.qp_solver)  # type: ignore[assignment]
+    if nmpc.backend.kernel is not None:  # the fast mode stops after one interior-point step
+        nmpc.backend.kernel.limit_fast_iterations(1)
+    else:
+        nmpc.backend.qp_solver = _FailingQP(nmpc.backend.qp_solver)  # type: ignore[assignment]
     state, ref, previous = _problem("slew")
     plan = nmpc.plan(state, ref, previous)
     assert plan.status.success, plan.status
@@ -257,3 +279,93 @@ def test_rti_prediction_is_the_model_step(zernike_model, magnet_robot) -> None:
 
     expected = discrete_step(tuple(state), field, magnet_robot, 0.04, 2)
     assert_allclose(plan.predicted_state, expected, rtol=1e-9, atol=1e-15)
+
+
+# -- the real-time iteration's preparation / feedback split --------------------------------------
+
+
+def _warm(model, robot) -> tuple[NMPC, np.ndarray, np.ndarray, np.ndarray]:
+    """An NMPC with a converged plan of the 'track' problem, and that problem."""
+    nmpc = NMPC(model, robot, NMPCConfig(**CONVERGE))
+    if nmpc.backend.kernel is None:
+        pytest.skip("the split needs the compiled kernel (no C compiler here)")
+    state, ref, previous = _problem("track")
+    first = nmpc.plan(state, ref, previous)
+    assert first.status.success
+    return nmpc, state, ref, first.currents
+
+
+def test_feedback_after_a_preparation_at_the_start_is_the_plain_iteration(
+    zernike_model, magnet_robot
+) -> None:
+    """Prepared at the very state the tick then measures, the feedback phase solves the QP
+    the unsplit tick solves: the same currents to 1e-12 A."""
+    ref_next = _problem("track")[1]
+    plain, state, _, currents = _warm(zernike_model, magnet_robot)
+    split, _, _, _ = _warm(zernike_model, magnet_robot)
+    x1 = plain.predict(state, currents)
+    a = plain.plan(x1, ref_next, currents)
+    split.prepare(x1, ref_next, currents)
+    b = split.plan(x1, ref_next, currents)
+    assert b.status.prepare_time > 0 and a.status.prepare_time == 0
+    assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
+
+
+def test_feedback_embeds_the_measured_state_to_first_order(zernike_model, magnet_robot) -> None:
+    """Prepared at a predicted state x_p, the feedback at the measured x_p + h d solves the
+    QP linearised at x_p with the start moved exactly for the linear model. Its currents
+    differ from the QP linearised at the measured state by O(h²) (the linearisation's
+    curvature), where leaving the move out of the dynamics or the cost would leave O(h).
+    Over a factor 10 in h the difference must shrink by at least 30 (100 in theory)."""
+    ref_next = _problem("track")[1]
+    d = np.array([1e-3, -0.6e-3, 0.05, 2e-3, 1e-3, 0.1])  # m, rad, m/s, rad/s
+    gaps = []
+    for h in (0.01, 0.001):
+        plain, state, _, currents = _warm(zernike_model, magnet_robot)
+        split, _, _, _ = _warm(zernike_model, magnet_robot)
+        x_p = plain.predict(state, currents)
+        measured = x_p + h * d
+        a = plain.plan(measured, ref_next, currents)
+        split.prepare(x_p, ref_next, currents)
+        b = split.plan(measured, ref_next, currents)
+        assert b.status.success and b.status.prepare_time > 0
+        gaps.append(np.max(np.abs(b.currents - a.currents)))
+    assert gaps[0] > 1e-6  # the move is felt at all
+    assert gaps[0] / gaps[1] > 30, gaps
+
+
+def test_a_preparation_for_other_parameters_is_not_used(zernike_model, magnet_robot) -> None:
+    """A tick whose reference or previous currents are not the prepared ones iterates from
+    its own linearisation: the currents of the unprepared tick, to 1e-12 A."""
+    ref_next = _problem("track")[1]
+    other = ref_next.copy()
+    other[:, 1] += 1e-3
+    plain, state, _, currents = _warm(zernike_model, magnet_robot)
+    split, _, _, _ = _warm(zernike_model, magnet_robot)
+    x1 = plain.predict(state, currents)
+    a = plain.plan(x1 + 1e-4, other, currents)
+    split.prepare(x1, ref_next, currents)
+    b = split.plan(x1 + 1e-4, other, currents)
+    assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
+
+
+def test_controller_prepares_between_ticks_in_the_loop(zernike_model, magnet_robot) -> None:
+    """On the simulated rig every NMPC tick after the first is prepared (prepare_time > 0)
+    and the closed loop tracks the S within 1 % of the unprepared loop's RMS."""
+    from magrun.bench.nmpc import s_curve_protocol
+    from magrun.trial import assemble, single_trial
+
+    proto = s_curve_protocol(60)
+    parts = assemble(single_trial(proto, "proposed", seed=0))
+    if parts.controller.planner.backend.kernel is None:  # type: ignore[attr-defined]
+        pytest.skip("the split needs the compiled kernel (no C compiler here)")
+    log = parts.run()
+    prepared = [s.prepare_time > 0 for s in log.status]
+    assert not prepared[0] and all(prepared[1:])
+    assert all(s.success for s in log.status)
+    # the same trial with the preparation switched off
+    plain = assemble(single_trial(proto, "proposed", seed=0))
+    plain.controller.prepare = lambda reference: None  # type: ignore[method-assign]
+    log_plain = plain.run()
+    assert not any(s.prepare_time > 0 for s in log_plain.status)
+    assert log.rms_position_mm == pytest.approx(log_plain.rms_position_mm, rel=0.01)

@@ -76,7 +76,9 @@ def bench_nmpc(
     all of it plus 1 s of hold) closed loop on the simulated rig (seed 0) with perfect
     feedback and no latency charged, so tracking differences come from the solver alone.
     Solve times are the planner's wall time per tick, the first (cold, iterated to
-    convergence) excluded.
+    convergence) excluded: for the RTI the preparation (done before the tick's measurement)
+    plus the feedback phase (after it), and the feedback phase alone under ``feedback``: the
+    planner's share of the delay from measurement to currents.
     """
     from magrun.trial import assemble, single_trial, with_solver
 
@@ -114,7 +116,10 @@ def bench_nmpc(
             parts = assemble(single_trial(proto, method, seed=0), tune=with_solver(solver))
             log = parts.run()
             controller = parts.controller
-            solve = log.solve_times[1:]
+            feedback = log.solve_times[1:]
+            prepare = np.array([s.prepare_time for s in log.status[1:]])
+            solve = feedback + prepare
+            split = bool(np.any(prepare > 0))
             out["variants"][name] = {
                 "coils": controller.n_channels,
                 "robot": proto.robot,
@@ -137,12 +142,24 @@ def bench_nmpc(
                 "rms_position_mm": log.rms_position_mm,
                 "rms_orientation_deg": log.rms_orientation_deg,
             }
+            if split:  # the delay from measurement to currents: the feedback phase alone
+                out["variants"][name]["feedback"] = {
+                    "median_ms": ms(feedback, 50),
+                    "p90_ms": ms(feedback, 90),
+                    "p99_ms": ms(feedback, 99),
+                    "max_ms": float(np.max(feedback) * 1e3),
+                    "prepared_ticks": int(np.sum(prepare > 0)),
+                    "prepare_median_ms": ms(prepare[prepare > 0], 50),
+                }
     v = out["variants"]
     if "proposed" in v and "proposed_ipopt_reference" in v:
         fast, ref = v["proposed"], v["proposed_ipopt_reference"]
         out["speedup_vs_ipopt"] = ref["median_ms"] / fast["median_ms"]
         out["p99_speedup_vs_ipopt"] = ref["p99_ms"] / fast["p99_ms"]
         out["rms_position_vs_ipopt"] = fast["rms_position_mm"] / ref["rms_position_mm"] - 1.0
+        if "feedback" in fast:
+            out["feedback_speedup_vs_ipopt"] = ref["median_ms"] / fast["feedback"]["median_ms"]
+            out["feedback_p99_speedup_vs_ipopt"] = ref["p99_ms"] / fast["feedback"]["p99_ms"]
     if "b5_lut" in v and "b5_lut_ipopt" in v:
         out["b5_speedup_vs_ipopt"] = v["b5_lut_ipopt"]["median_ms"] / v["b5_lut"]["median_ms"]
     return out
@@ -158,7 +175,16 @@ def summary(out: dict[str, Any]) -> list[str]:
             f" RMS {r['rms_position_mm']:.4f} mm / {r['rms_orientation_deg']:.3f} deg,"
             f" build {r['build_s']:.1f} s"
         )
-    for key in ("speedup_vs_ipopt", "p99_speedup_vs_ipopt", "b5_speedup_vs_ipopt"):
+        if "feedback" in r:
+            f = r["feedback"]
+            lines.append(
+                f"{'':>25}  feedback phase: median {f['median_ms']:.2f} ms,"
+                f" p99 {f['p99_ms']:.2f} ms ({f['prepared_ticks']} prepared ticks)"
+            )
+    for key in (
+        "speedup_vs_ipopt", "p99_speedup_vs_ipopt", "feedback_speedup_vs_ipopt",
+        "feedback_p99_speedup_vs_ipopt", "b5_speedup_vs_ipopt",
+    ):  # fmt: skip
         if key in out:
             lines.append(f"{key}: {out[key]:.1f}x")
     if "rms_position_vs_ipopt" in out:

@@ -17,6 +17,10 @@ at every fluoroscopy frame, so the difference spikes there (~20 mm/s at 3 Hz and
 the drag-dominated robot's velocity is set by the field within a few ms, and the model's
 prediction of it is what the plan needs.
 
+After the currents went out, ``prepare(next reference window)`` lets the planner do the next
+tick's work that needs no measurement (the NMPC linearises around its prediction); ``step``
+then only finishes it, so the delay from measurement to currents is the feedback phase.
+
 ``step`` returns a :class:`ControlOutput`: the currents to apply, the estimate it used, its
 prediction of the pose at the next tick, and a :class:`ControllerStatus` (solve time,
 iterations, success, fallback). Planners differ (NMPC, PID + allocation, linear MPC +
@@ -114,6 +118,15 @@ class Planner(ABC):
         """The estimate's covariance (3×3) at this tick, before :meth:`plan`; planners that
         use it (the NMPC's corridor) override this."""
 
+    def prepare(  # noqa: B027 (optional hook)
+        self, state: FloatArray, reference: FloatArray, previous: FloatArray
+    ) -> None:
+        """Work for the next tick that needs no measurement, done after this tick's currents
+        went out: ``state`` is the predicted state at the next tick (6,), ``reference`` the
+        next tick's window and ``previous`` the currents just applied. :meth:`plan` then
+        does only what the measurement changes (the NMPC's real-time iteration: linearise
+        before, solve after). Planners without such a split ignore it."""
+
 
 class Controller:
     """Estimator + planner + safety clamp: one tick of any control method.
@@ -167,6 +180,7 @@ class Controller:
         self.planner.reset()
         self._previous_estimate = p
         self._prediction: FloatArray | None = None
+        self._predicted_state: FloatArray | None = None
         self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
 
@@ -209,8 +223,16 @@ class Controller:
     def _advance(self, estimate: FloatArray, predicted: FloatArray, currents: FloatArray) -> None:
         self._previous_estimate = estimate
         self._prediction = predicted[:3].copy()
+        self._predicted_state = predicted.copy() if predicted.size >= 6 else None
         self._predicted_velocity = predicted[3:6].copy() if predicted.size >= 6 else None
         self.currents = currents
+
+    def prepare(self, reference: FloatArray) -> None:
+        """The planner's preparation for the next tick (:meth:`Planner.prepare`), from the
+        prediction of this tick's plan: call it after the currents went out, before the next
+        measurement. ``reference``: the next tick's window."""
+        if self._predicted_state is not None:
+            self.planner.prepare(self._predicted_state, reference, self.currents)
 
     def replay_step(
         self, measurement: ArrayLike | None, currents: ArrayLike

@@ -106,6 +106,11 @@ FloatArray = NDArray[np.float64]
 STATE_SCALE = np.array([1e-3, 1e-3, 1.0, 1e-3, 1e-3, 1.0])
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
 NX = 6
+#: the kernel's fast HPIPM mode's initial barrier parameter (HPIPM's "speed_abs" default: 10).
+#: The RTI's QPs are in steps from a plan shifted from the last, small and mostly inactive;
+#: from 1e-2 HPIPM takes 3 interior-point iterations on the S (median) where it took 5
+#: (docs/benchmarks.md); the robust mode, the retry, keeps its default
+KERNEL_MU0 = 1e-2
 #: corridor half-planes per stage (the critical boundary's; FreeSpace.corridor)
 N_PLANES = 1
 #: per-stage parameters: the reference pose (3, scaled) and the half-planes (nx, ny, c mm)
@@ -198,6 +203,7 @@ class NMPC(Planner):
     def reset(self) -> None:
         self.backend.reset()
         self.position_covariance = None
+        self._prepare_time = 0.0
 
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:
         """The estimate's covariance (3×3: x, y, θ), or None: tightens the corridor."""
@@ -225,10 +231,16 @@ class NMPC(Planner):
         return planes
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
-        X = self._predict(np.asarray(state) / STATE_SCALE, np.asarray(currents) / self.max_current)
-        return np.asarray(X, dtype=np.float64).ravel() * STATE_SCALE
+        X, u = np.asarray(state) / STATE_SCALE, np.asarray(currents) / self.max_current
+        kernel = getattr(self.backend, "kernel", None)
+        if kernel is not None:  # the same compiled step, without CasADi's call overhead
+            return kernel.predict(X, u) * STATE_SCALE
+        return np.asarray(self._predict(X, u), dtype=np.float64).ravel() * STATE_SCALE
 
-    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+    def _start(
+        self, state: FloatArray, reference: FloatArray, previous: FloatArray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(x0 SI, its position in the workspace box; u_prev scaled; stage parameters)."""
         N = self.config.horizon
         x0 = np.asarray(state, dtype=np.float64).copy()
         x0[:2] = np.clip(x0[:2], -self.position_bound, self.position_bound)
@@ -236,14 +248,35 @@ class NMPC(Planner):
         if ref.shape != (N + 1, 3):
             raise ValueError(f"reference must have shape ({N + 1}, 3), got {ref.shape}")
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
+        return x0, u_prev, self.problem.stage_parameters(ref, self.corridor(x0, ref))
+
+    def prepare(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> None:
+        """The real-time iteration's preparation phase for the next tick (RTI solver): the
+        plan moved on one stage and every stage linearised there, stage 0 at the predicted
+        ``state``. The next :meth:`plan` then embeds its measured state into that QP and
+        solves it (the feedback phase), where its parameters are the prepared ones: the
+        same reference and previous currents, and corridor margins from the same
+        covariance. With a phantom's corridor and a Kalman filter the margins follow the
+        next estimate's covariance, so nothing is prepared and every tick iterates in full."""
+        if self.problem.has_corridor and self.position_covariance is not None:
+            return  # the margins follow the next estimate's covariance: nothing to prepare
         t0 = time.perf_counter()
-        params = self.problem.stage_parameters(ref, self.corridor(x0, ref))
+        x0, u_prev, params = self._start(state, reference, previous)
+        done = self.backend.prepare(np.concatenate([x0 / STATE_SCALE, u_prev]), params)
+        self._prepare_time = time.perf_counter() - t0 if done else 0.0
+
+    def plan(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> Plan:
+        t0 = time.perf_counter()
+        x0, u_prev, params = self._start(state, reference, previous)
         result = self.backend.solve(x0 / STATE_SCALE, u_prev, params)
         elapsed = time.perf_counter() - t0
+        prepared, self._prepare_time = self._prepare_time, 0.0
         if result.ok:
             currents = result.u0 * self.max_current
             predicted = self.predict(x0, currents)
-            status = ControllerStatus(elapsed, result.iterations, True, "", result.message)
+            status = ControllerStatus(
+                elapsed, result.iterations, True, "", result.message, prepared
+            )
         else:
             shifted = self.backend.fallback()
             if shifted is not None:
@@ -251,7 +284,9 @@ class NMPC(Planner):
             else:
                 currents, fallback = np.zeros(self.n_currents), "zero"
             predicted = self.predict(x0, currents)
-            status = ControllerStatus(elapsed, result.iterations, False, fallback, result.message)
+            status = ControllerStatus(
+                elapsed, result.iterations, False, fallback, result.message, prepared
+            )
         return Plan(currents, predicted, status)
 
 
@@ -391,6 +426,10 @@ class SolveResult:
 class _Backend:
     def reset(self) -> None:
         raise NotImplementedError
+
+    def prepare(self, s_lin: FloatArray, par: FloatArray) -> bool:
+        """Work for the coming tick before its measurement; whether any was done."""
+        return False
 
     def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
         """One tick's plan from scaled x0, the previous currents and the (NP, N+1) stage
@@ -696,7 +735,8 @@ class RTISolver(_Backend):
         self.qp_solver = ca.conic("rti_hpipm", "hpipm", structure, fast)
         self.qp_robust = ca.conic("rti_hpipm_robust", "hpipm", structure, opts)
 
-    #: HPIPM's options that the kernel takes from ``NMPCConfig.hpipm`` (CasADi's names)
+    #: HPIPM's options that the kernel takes from ``NMPCConfig.hpipm`` (CasADi's names), with
+    #: ``iter_max`` and ``mu0``
     KERNEL_TOLERANCES = ("res_g_max", "res_b_max", "res_d_max", "res_m_max")
 
     def _kernel(
@@ -710,13 +750,14 @@ class RTISolver(_Backend):
         dims = {"N": ocp.N, "NS": self.ns, "NU": nu, "NR": n_r, "NRT": n_rt, "NP": NP,
                 "NB": 2 + nu}  # fmt: skip
         heading = ocp.heading_residual if ocp.has_heading else None
-        library = build_kernel(stage, terminal, heading, dims)
+        library = build_kernel(stage, terminal, heading, ocp.step_scaled, dims)
         if library is None:
             return None
-        hp = {"iter_max": 50, **{k: 1e-8 for k in self.KERNEL_TOLERANCES}, **cfg.hpipm}
+        hp = {"iter_max": 50, **{k: 1e-8 for k in self.KERNEL_TOLERANCES}, "mu0": KERNEL_MU0,
+              **cfg.hpipm}  # fmt: skip
         bounded = np.concatenate([[0, 1], NX + np.arange(nu)])
         upper = np.concatenate([[ocp.pos_max] * 2, np.ones(nu)])
-        tolerances = tuple(float(hp[k]) for k in self.KERNEL_TOLERANCES)
+        tolerances = tuple(float(hp[k]) for k in (*self.KERNEL_TOLERANCES, "mu0"))
         return RTIKernel(
             library, dims, np.broadcast_to(ocp.du_max, (nu,)), bounded, -upper, upper,
             tolerances, int(hp["iter_max"]),  # type: ignore[arg-type]
@@ -761,6 +802,7 @@ class RTISolver(_Backend):
         self._has_plan = False  # the kernel holds a plan
         self._aligned = False  # ... already moved on to the coming tick
         self._prepared: tuple[FloatArray, FloatArray] | None = None  # (par, s_lin)
+        self._plan: FloatArray | None = None  # the kernel's last plan s₁ … s_N
 
     def prepare(self, s_lin: FloatArray, par: FloatArray) -> bool:
         """The preparation phase for the coming tick (kernel only): the plan moved on one
@@ -821,6 +863,7 @@ class RTISolver(_Backend):
         self.robust_retries = k.retries
         self._has_plan, self._aligned = True, False
         S, V = k.iterate()
+        self._plan = S
         return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
 
     def _failed(self, iterations: int, message: str) -> SolveResult:
@@ -897,6 +940,7 @@ class RTISolver(_Backend):
                 self.kernel.shift()
             self._aligned = False
             S, _ = self.kernel.iterate()
+            self._plan = S
             return S[0, NX:].copy()
         if self._z is None:
             return None
@@ -906,8 +950,8 @@ class RTISolver(_Backend):
 
     def _plan_states(self) -> FloatArray | None:
         """s₁ … s_N of the last plan, (N, ns)."""
-        if self.kernel is not None:
-            return self.kernel.iterate()[0] if self._has_plan else None
+        if self.kernel is not None:  # as planned (a preparation may have moved the iterate on)
+            return self._plan if self._has_plan else None
         return None if self._z is None else self._unpack(self._z)[0]
 
     def currents_plan(self) -> FloatArray | None:

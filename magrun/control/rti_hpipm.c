@@ -6,6 +6,7 @@
  *   rti_stage(s, v, par)   -> s_next, A = ds_next/ds, B = ds_next/dv, r, Js = dr/ds, Jv = dr/dv
  *   rti_terminal(s, par)   -> rN, JN = drN/ds
  *   rti_heading(X, u)      -> the heading-stable field's residual (one row, or none)
+ *   rti_step(X, u)         -> X_next, one step of the model (the planner's prediction)
  *
  * all outputs dense and column-major, and the dimensions RTI_N (horizon), RTI_NS (stage
  * state s = (X, u_prev)), RTI_NU (currents), RTI_NR / RTI_NRT (stage / terminal residual
@@ -124,7 +125,8 @@ void rti_free(void *handle) {
 
 /* du_max (nu): the slew bound on v; idxbx, s_lb, s_ub (nb): the bounded entries of a stage
  * state and their bounds; tol: HPIPM's tolerances (stationarity, equality, inequality,
- * complementarity); iter_max: its iteration limit. NULL when out of memory. */
+ * complementarity) and the fast mode's initial barrier parameter mu0; iter_max: its
+ * iteration limit. NULL when out of memory. */
 void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, const double *s_ub,
                  const double *tol, int iter_max) {
     rti_mem *m = calloc(1, sizeof(rti_mem));
@@ -155,6 +157,7 @@ void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, con
         if (!(m->memory[3 + i] = malloc(d_ocp_qp_ipm_arg_memsize(&m->dim)))) goto fail;
         d_ocp_qp_ipm_arg_create(&m->dim, &m->arg[i], m->memory[3 + i]);
         set_arg(&m->arg[i], modes[i], tol, iter_max);
+        if (i == 0) d_ocp_qp_ipm_arg_set_mu0((double *)&tol[4], &m->arg[0]);
     }
     /* one workspace block for both modes, used one at a time */
     hpipm_size_t ws0 = d_ocp_qp_ipm_ws_memsize(&m->dim, &m->arg[0]);
@@ -175,6 +178,8 @@ void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, con
     rti_terminal_work(&a, &r, &i, &w);
     grow(&n_arg, a), grow(&n_res, r), grow(&n_iw, i), grow(&n_w, w);
     rti_heading_work(&a, &r, &i, &w);
+    grow(&n_arg, a), grow(&n_res, r), grow(&n_iw, i), grow(&n_w, w);
+    rti_step_work(&a, &r, &i, &w);
     grow(&n_arg, a), grow(&n_res, r), grow(&n_iw, i), grow(&n_w, w);
     m->arg_ptr = calloc(n_arg + 1, sizeof(double *));
     m->res_ptr = calloc(n_res + 1, sizeof(double *));
@@ -351,4 +356,17 @@ int rti_feedback(void *handle, const double *s0, double *info) {
     return 0;
 }
 
+/* X_next = f(X, u), scaled: one step of the model */
+void rti_predict(void *handle, const double *X, const double *u, double *X_next) {
+    rti_mem *m = handle;
+    m->arg_ptr[0] = X, m->arg_ptr[1] = u;
+    m->res_ptr[0] = X_next;
+    rti_step(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
+}
+
 int rti_retries(void *handle) { return ((rti_mem *)handle)->retries; }
+
+/* the fast mode's iteration limit alone (tests: a fast mode that stops short) */
+void rti_set_fast_iter_max(void *handle, int iter_max) {
+    d_ocp_qp_ipm_arg_set_iter_max(&iter_max, &((rti_mem *)handle)->arg[0]);
+}

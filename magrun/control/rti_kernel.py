@@ -52,14 +52,15 @@ def build_kernel(
     stage: ca.Function,
     terminal: ca.Function,
     heading: ca.Function | None,
+    step: ca.Function,
     dims: dict[str, int],
     name: str = "nmpc_rti",
 ) -> Path | None:
     """Generate and compile the kernel; the library's path, or None (module doc).
 
     ``stage(s, v, par)`` → (s_next, A, B, r, Js, Jv), ``terminal(s, par)`` → (rN, JN),
-    ``heading(X, u)`` → the heading residual (one row), all outputs dense; ``dims``: N, NS,
-    NU, NR, NRT, NP, NB.
+    ``heading(X, u)`` → the heading residual (one row), all outputs dense; ``step(X, u)`` →
+    the next state (the planner's prediction); ``dims``: N, NS, NU, NR, NRT, NP, NB.
     """
     link = _link_args()
     if link is None:
@@ -70,7 +71,10 @@ def build_kernel(
         heading_fn = ca.Function("rti_heading", [X, u], [ca.SX.zeros(1)])
     else:
         heading_fn = ca.Function("rti_heading", [X, u], [heading(X, u)])
-    functions = [_dense("rti_stage", stage), _dense("rti_terminal", terminal), heading_fn]
+    functions = [
+        _dense("rti_stage", stage), _dense("rti_terminal", terminal), heading_fn,
+        _dense("rti_step", step),
+    ]  # fmt: skip
 
     def write(folder: Path) -> Path:
         cg = ca.CodeGenerator("rti_generated.c", {"with_header": False})
@@ -97,9 +101,13 @@ class RTIKernel:
         bounded: FloatArray,
         lower: FloatArray,
         upper: FloatArray,
-        tolerances: tuple[float, float, float, float],
+        tolerances: tuple[float, ...],
         iter_max: int,
     ) -> None:
+        """``tolerances``: HPIPM's stationarity, equality, inequality and complementarity
+        tolerances and the fast mode's initial barrier parameter mu0."""
+        if len(tolerances) != 5:
+            raise ValueError("tolerances: four residual tolerances and mu0")
         self.N, self.ns, self.nu = dims["N"], dims["NS"], dims["NU"]
         lib = ctypes.CDLL(str(library))
         lib.rti_create.restype = ctypes.c_void_p
@@ -112,6 +120,8 @@ class RTIKernel:
         lib.rti_prepare.argtypes = [ctypes.c_void_p, _double_p, _double_p]
         lib.rti_feedback.argtypes = [ctypes.c_void_p, _double_p, _double_p]
         lib.rti_retries.argtypes = [ctypes.c_void_p]
+        lib.rti_set_fast_iter_max.argtypes = [ctypes.c_void_p, ctypes.c_int]
+        lib.rti_predict.argtypes = [ctypes.c_void_p, _double_p, _double_p, _double_p]
         self._lib = lib
         arrays = [
             np.ascontiguousarray(np.broadcast_to(du_max, (self.nu,)), dtype=np.float64),
@@ -161,6 +171,18 @@ class RTIKernel:
         s = np.ascontiguousarray(s0, dtype=np.float64)
         status = self._lib.rti_feedback(self._handle, _ptr(s), self._info_p)
         return int(status), self._info
+
+    def predict(self, X: FloatArray, u: FloatArray) -> FloatArray:
+        """One step of the model from the scaled state ``X`` under currents ``u`` (scaled)."""
+        X = np.ascontiguousarray(X, dtype=np.float64)
+        u = np.ascontiguousarray(u, dtype=np.float64)
+        out = np.empty(X.size)
+        self._lib.rti_predict(self._handle, _ptr(X), _ptr(u), _ptr(out))
+        return out
+
+    def limit_fast_iterations(self, iter_max: int) -> None:
+        """HPIPM's fast mode stops after ``iter_max`` iterations (tests of the robust retry)."""
+        self._lib.rti_set_fast_iter_max(self._handle, int(iter_max))
 
     @property
     def retries(self) -> int:
