@@ -9,7 +9,9 @@ One tick::
     rig.observe() ──► actual pose (+ camera frame)
     tracker(frame) ──► tracked pose, or None when lost       (no tracker: the actual pose)
     feedback(t, tracked) ──► measured pose, or None          (e.g. FluoroscopyMimic)
-    controller.step(measured, reference window) ──► currents ──► rig.apply ──► rig.advance
+    controller.step(measured, reference window) ──► currents ──► rig.apply
+    controller.prepare(next reference window)                 (the plant runs on meanwhile)
+    rig.advance (the rest of the period)
 
 ``feedback(t, pose)`` turns the camera pose into the controller's measurement, or ``None``
 when no fluoroscopy frame arrives at this tick; :func:`perfect_feedback` passes every pose
@@ -143,7 +145,10 @@ def run_trial(
     depends on the machine's speed and load. The measured ``c`` is logged either way.
 
     ``on_tick`` receives a :class:`Tick` after each tick's currents are applied (the
-    recorder's hook); it runs on the loop's thread, so it must be quick.
+    recorder's hook); it runs on the loop's thread, so it must be quick. Then the controller
+    prepares the next tick (:meth:`Controller.prepare`: the NMPC linearises around its
+    prediction), which is not part of the tick's measured compute ``c``: it happens while the
+    plant runs on the new currents, before the next observation.
 
     Every tick's currents pass through ``safety`` (:class:`magrun.safety.SafetyLayer`;
     default: the controller's current and slew limits, a safe stop on non-finite currents,

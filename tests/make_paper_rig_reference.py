@@ -5,9 +5,9 @@ protocols/tiny.yaml, every method of it, as the reference that later versions mu
 
 The arrays are each trial's recorded poses (actual, estimated, predicted, desired; x, y in m,
 θ in rad; NaN where a stream had no message) and currents (A), keyed ``<trial path>/<what>``.
-tests/test_emns.py checks that the paper's rig still records them (the N-channel coil
-systems must not change it). Regenerate only when a change is meant to change the paper
-rig's trials, and say so in the commit.
+tests/test_emns.py checks that the paper's rig still records them (changes such as the
+N-channel coil systems must not change it). Regenerate only when a change is meant to change
+the paper rig's trials, and say so in the commit.
 """
 
 from __future__ import annotations

@@ -224,6 +224,21 @@ def test_bench_nmpc_json(runner: CliRunner, monkeypatch: pytest.MonkeyPatch) -> 
     assert doc["speedup_vs_ipopt"] == pytest.approx(ref["median_ms"] / fast["median_ms"])
     assert doc["machine"]["logical_cores"] >= 1
     assert "b5_speedup_vs_ipopt" not in doc  # its IPOPT variant did not run
+    assert "feedback" not in fast  # uncompiled: no kernel, so no preparation
+
+
+def test_bench_nmpc_reports_the_feedback_phase(runner: CliRunner) -> None:
+    """With the compiled kernel every tick after the first is prepared; the per-tick figure
+    is preparation + feedback, so it is at least the feedback phase's."""
+    result = runner.invoke(cli, ["bench", "nmpc", "--ticks", "6", "--variant", "proposed",
+                                 "--json"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    r = json.loads(result.output)["variants"]["proposed"]
+    f = r["feedback"]
+    assert f["prepared_ticks"] == 5 == r["ticks"] - 1  # the first (cold) tick is excluded
+    assert 0 < f["median_ms"] <= f["p90_ms"] <= f["p99_ms"] <= f["max_ms"]
+    assert f["median_ms"] < r["median_ms"]
+    assert f["prepare_median_ms"] > 0
 
 
 def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:

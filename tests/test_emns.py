@@ -295,10 +295,10 @@ def test_the_shipped_octomag_protocol_runs_its_quick_trials(tmp_path: Path) -> N
 
 def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
     """Every method on tests/data/protocols/tiny.yaml records the poses and currents of
-    tests/data/paper_rig_reference.npz (written by tests/make_paper_rig_reference.py with
-    magrun as it was before coil systems of N channels). On the machine that wrote it they
-    are equal bit for bit; elsewhere a different CPU may round a sum differently, so the
-    bound is 1e-9 of each quantity's scale, far below any change of behaviour."""
+    tests/data/paper_rig_reference.npz (written by tests/make_paper_rig_reference.py; the
+    N-channel coil systems left it unchanged). On the machine that wrote it they are equal
+    bit for bit; elsewhere a different CPU may round a sum differently, so the bound is 1e-9
+    of each quantity's scale, far below any change of behaviour."""
     import sys
 
     sys.path.insert(0, str(ROOT / "tests"))

@@ -307,7 +307,8 @@ def test_feedback_after_a_preparation_at_the_start_is_the_plain_iteration(
     a = plain.plan(x1, ref_next, currents)
     split.prepare(x1, ref_next, currents)
     b = split.plan(x1, ref_next, currents)
-    assert b.status.prepare_time > 0 and a.status.prepare_time == 0
+    assert b.status.prepare_time > 0
+    assert a.status.prepare_time == 0
     assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
 
 
@@ -328,7 +329,8 @@ def test_feedback_embeds_the_measured_state_to_first_order(zernike_model, magnet
         a = plain.plan(measured, ref_next, currents)
         split.prepare(x_p, ref_next, currents)
         b = split.plan(measured, ref_next, currents)
-        assert b.status.success and b.status.prepare_time > 0
+        assert b.status.success
+        assert b.status.prepare_time > 0
         gaps.append(np.max(np.abs(b.currents - a.currents)))
     assert gaps[0] > 1e-6  # the move is felt at all
     assert gaps[0] / gaps[1] > 30, gaps
@@ -361,7 +363,8 @@ def test_controller_prepares_between_ticks_in_the_loop(zernike_model, magnet_rob
         pytest.skip("the split needs the compiled kernel (no C compiler here)")
     log = parts.run()
     prepared = [s.prepare_time > 0 for s in log.status]
-    assert not prepared[0] and all(prepared[1:])
+    assert not prepared[0]
+    assert all(prepared[1:])
     assert all(s.success for s in log.status)
     # the same trial with the preparation switched off
     plain = assemble(single_trial(proto, "proposed", seed=0))

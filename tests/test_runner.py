@@ -29,7 +29,8 @@ from magrun.scene import s_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
-TIMING_FIELDS = {"solveTime", "computeTime", "prepareTime"}  # wall-clock fields, different on every run
+# wall-clock fields, different on every run
+TIMING_FIELDS = {"solveTime", "computeTime", "prepareTime"}
 
 
 def read_mcap(path: Path) -> tuple[dict[str, int], list[tuple[str, int, dict[str, Any]]], dict]:

@@ -753,14 +753,14 @@ class RTISolver(_Backend):
         library = build_kernel(stage, terminal, heading, ocp.step_scaled, dims)
         if library is None:
             return None
-        hp = {"iter_max": 50, **{k: 1e-8 for k in self.KERNEL_TOLERANCES}, "mu0": KERNEL_MU0,
+        hp = {"iter_max": 50, **dict.fromkeys(self.KERNEL_TOLERANCES, 1e-08), "mu0": KERNEL_MU0,
               **cfg.hpipm}  # fmt: skip
         bounded = np.concatenate([[0, 1], NX + np.arange(nu)])
         upper = np.concatenate([[ocp.pos_max] * 2, np.ones(nu)])
         tolerances = tuple(float(hp[k]) for k in (*self.KERNEL_TOLERANCES, "mu0"))
         return RTIKernel(
             library, dims, np.broadcast_to(ocp.du_max, (nu,)), bounded, -upper, upper,
-            tolerances, int(hp["iter_max"]),  # type: ignore[arg-type]
+            tolerances, int(hp["iter_max"]),
         )  # fmt: skip
 
     def _split(self, z: Any) -> tuple[Any, Any]:

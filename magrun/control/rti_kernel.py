@@ -123,7 +123,7 @@ class RTIKernel:
         lib.rti_set_fast_iter_max.argtypes = [ctypes.c_void_p, ctypes.c_int]
         lib.rti_predict.argtypes = [ctypes.c_void_p, _double_p, _double_p, _double_p]
         self._lib = lib
-        arrays = [
+        arrays: list[np.ndarray] = [
             np.ascontiguousarray(np.broadcast_to(du_max, (self.nu,)), dtype=np.float64),
             np.ascontiguousarray(bounded, dtype=np.intc),
             np.ascontiguousarray(lower, dtype=np.float64),
@@ -133,7 +133,7 @@ class RTIKernel:
         handle = lib.rti_create(*(_ptr(a) for a in arrays), int(iter_max))
         if not handle:
             raise MemoryError("the NMPC's QP kernel could not allocate its memory")
-        self._handle = ctypes.c_void_p(handle)
+        self._handle: ctypes.c_void_p | None = ctypes.c_void_p(handle)
         self._info = np.zeros(5)
         self._info_p = _ptr(self._info)
 
@@ -146,7 +146,8 @@ class RTIKernel:
     def set_iterate(self, S: FloatArray, V: FloatArray) -> None:
         S = np.ascontiguousarray(S, dtype=np.float64)
         V = np.ascontiguousarray(V, dtype=np.float64)
-        assert S.shape == (self.N, self.ns) and V.shape == (self.N, self.nu)
+        assert S.shape == (self.N, self.ns)
+        assert V.shape == (self.N, self.nu)
         self._lib.rti_set_iterate(self._handle, _ptr(S), _ptr(V))
 
     def iterate(self) -> tuple[FloatArray, FloatArray]:
