@@ -69,6 +69,7 @@ def shared_library(
     write_source: Callable[[Path], Path],
     optimisation: str = "-O2",
     link: tuple[str, ...] = (),
+    without: str = "CasADi functions run uncompiled",
 ) -> Path | None:
     """Compile the C file that ``write_source(folder)`` writes; the cached ``.so`` or None.
 
@@ -76,7 +77,7 @@ def shared_library(
     library is keyed on that file's content (see the module doc). ``optimisation`` is the
     compiler's -O flag: -O1 compiles large generated files (an NLP's Hessian) several times
     faster than -O2. ``link``: further compiler arguments after the source (include folders,
-    libraries), part of the key.
+    libraries), part of the key. ``without``: what happens instead, for the warning.
     """
     if not compilation_enabled():
         _warn_once(f"no C compiler ({CC}) or MAGRUN_COMPILE=0: CasADi functions run uncompiled")
@@ -104,7 +105,7 @@ def shared_library(
                 partial.unlink(missing_ok=True)
                 _warn_once(
                     f"compiling {name} failed ({shlex.join(cmd)}): {done.stderr.strip()[:500]};"
-                    " CasADi functions run uncompiled"
+                    f" {without}"
                 )
                 return None
             os.replace(partial, target)

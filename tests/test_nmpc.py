@@ -372,3 +372,37 @@ def test_controller_prepares_between_ticks_in_the_loop(zernike_model, magnet_rob
     log_plain = plain.run()
     assert not any(s.prepare_time > 0 for s in log_plain.status)
     assert log.rms_position_mm == pytest.approx(log_plain.rms_position_mm, rel=0.01)
+
+
+def test_the_kernel_links_another_hpipm_build_or_warns(
+    zernike_model, magnet_robot, tmp_path, monkeypatch
+) -> None:
+    """``MAGRUN_HPIPM_DIR`` names the HPIPM / BLASFEO build the kernel links (here one laid
+    out as an install prefix around the CasADi wheel's own files: the same plan to 1e-12);
+    one without the libraries gives a warning and CasADi's interface (the same optimum to
+    the 1e-5 the two QP paths keep)."""
+    from magrun.control import rti_kernel
+
+    if not compiled_mod.compilation_enabled():
+        pytest.skip("no C compiler")
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path / "cache"))
+    _, u_default = _solve(zernike_model, magnet_robot, "rti", "slew")
+    wheel = rti_kernel.casadi_folder()
+    prefix = tmp_path / "hpipm"
+    (prefix / "lib").mkdir(parents=True)
+    (prefix / "include").symlink_to(wheel / "include")
+    for name in ("libhpipm.so", "libblasfeo.so"):
+        (prefix / "lib" / name).symlink_to(wheel / name)
+    monkeypatch.setenv(rti_kernel.HPIPM_DIR_VARIABLE, str(prefix))
+    assert rti_kernel.hpipm_build() == ([prefix / "include"], prefix / "lib")
+    nmpc, u_prefix = _solve(zernike_model, magnet_robot, "rti", "slew")
+    assert nmpc.backend.kernel is not None
+    assert_allclose(u_prefix, u_default, rtol=0, atol=1e-12)
+
+    monkeypatch.setenv(rti_kernel.HPIPM_DIR_VARIABLE, str(tmp_path / "empty"))
+    with pytest.warns(compiled_mod.CompileWarning, match="holds no HPIPM"):
+        nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(tol=1e-10, **CONVERGE))
+    assert nmpc.backend.kernel is None
+    state, ref, previous = _problem("slew")
+    assert nmpc.plan(state, ref, previous).status.success
+    assert_allclose(nmpc.backend.currents_plan(), u_default, atol=1e-5)

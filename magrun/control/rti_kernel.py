@@ -11,12 +11,20 @@ builds that ship inside the CasADi wheel (its ``include`` folder and shared libr
 libraries missing, ``MAGRUN_COMPILE=0``); the NMPC then uses CasADi's HPIPM interface on the
 same QP (:class:`magrun.control.nmpc.RTISolver`), slower and the same to the solver's
 tolerance.
+
+The wheel's BLASFEO is its generic (portable C) build. ``MAGRUN_HPIPM_DIR`` names another
+HPIPM / BLASFEO build instead, e.g. an acados install whose BLASFEO was built for the CPU
+(``X64_INTEL_HASWELL`` and the like): the same QPs, solved about twice as fast
+(docs/benchmarks.md). The kernel is linked with an RPATH to that build (not a RUNPATH), so
+``LD_LIBRARY_PATH`` cannot swap in libraries the headers do not describe. HPIPM and BLASFEO
+are loaded once per process by their names: use one build per process.
 """
 
 from __future__ import annotations
 
 import ctypes
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +32,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.compiled import shared_library
+from magrun.compiled import CompileWarning, shared_library
 
 FloatArray = NDArray[np.float64]
 
@@ -33,19 +41,47 @@ _double_p = ctypes.POINTER(ctypes.c_double)
 _int_p = ctypes.POINTER(ctypes.c_int)
 
 
+#: an HPIPM / BLASFEO build to link the kernel against instead of the CasADi wheel's
+HPIPM_DIR_VARIABLE = "MAGRUN_HPIPM_DIR"
+FALLBACK = "the NMPC's QPs go through CasADi's HPIPM interface (the same optimum, slower)"
+
+
 def casadi_folder() -> Path:
     """Where the CasADi wheel keeps its headers and HPIPM / BLASFEO libraries."""
     return Path(ca.__file__).parent
 
 
-def _link_args() -> tuple[str, ...] | None:
-    lib = casadi_folder()
-    if not (lib / "include" / "hpipm_d_ocp_qp_ipm.h").exists():
+def hpipm_build() -> tuple[list[Path], Path] | None:
+    """(header folders, library folder) of the HPIPM and BLASFEO the kernel links: those of
+    ``$MAGRUN_HPIPM_DIR`` where set (a prefix with ``lib/`` and the headers under
+    ``include/``, ``include/hpipm/include`` or ``include/blasfeo/include``, as an acados
+    install lays them out), else the CasADi wheel's; None where headers or libraries are
+    missing."""
+    prefix = os.environ.get(HPIPM_DIR_VARIABLE)
+    if prefix:
+        root = Path(prefix)
+        candidates = [root / "include", root / "include" / "hpipm" / "include",
+                      root / "include" / "blasfeo" / "include"]  # fmt: skip
+        lib = root / "lib"
+    else:
+        candidates, lib = [casadi_folder() / "include"], casadi_folder()
+    includes = [c for c in candidates if c.is_dir()]
+    needed = ("hpipm_d_ocp_qp_ipm.h", "blasfeo_target.h")
+    if not all(any((c / h).exists() for c in includes) for h in needed):
         return None
     if not (lib / "libhpipm.so").exists() or not (lib / "libblasfeo.so").exists():
         return None
-    return (f"-I{lib / 'include'}", f"-L{lib}", f"-Wl,-rpath,{lib}", "-Wl,-Bsymbolic",
-            "-lhpipm", "-lblasfeo")  # fmt: skip
+    return includes, lib
+
+
+def _link_args() -> tuple[str, ...] | None:
+    build = hpipm_build()
+    if build is None:
+        return None
+    includes, lib = build
+    # RPATH, not RUNPATH: the libraries the headers belong to, whatever LD_LIBRARY_PATH says
+    return (*(f"-I{c}" for c in includes), f"-L{lib}", f"-Wl,-rpath,{lib}",
+            "-Wl,--disable-new-dtags", "-Wl,-Bsymbolic", "-lhpipm", "-lblasfeo")  # fmt: skip
 
 
 def build_kernel(
@@ -64,6 +100,14 @@ def build_kernel(
     """
     link = _link_args()
     if link is None:
+        if os.environ.get(HPIPM_DIR_VARIABLE):
+            warnings.warn(
+                f"{HPIPM_DIR_VARIABLE}={os.environ[HPIPM_DIR_VARIABLE]} holds no HPIPM and"
+                " BLASFEO build (lib/libhpipm.so, lib/libblasfeo.so and their headers under"
+                f" include/): {FALLBACK}",
+                CompileWarning,
+                stacklevel=2,
+            )
         return None
     X = ca.SX.sym("X", dims["NS"] - dims["NU"])
     u = ca.SX.sym("u", dims["NU"])
@@ -87,7 +131,7 @@ def build_kernel(
         target.write_text(generated + "\n" + defines + _DRIVER.read_text())
         return target
 
-    return shared_library(name, write, optimisation="-O2", link=link)
+    return shared_library(name, write, optimisation="-O2", link=link, without=FALLBACK)
 
 
 class RTIKernel:
