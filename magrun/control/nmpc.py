@@ -65,6 +65,13 @@ vₖ = uₖ − u_{k−1} (8), so the slew limit is a box on vₖ and every cons
 A trial's first tick (no previous plan) iterates to convergence instead. Iterated to
 convergence on a fixed problem it reaches the same optimum as IPOPT (tests/test_nmpc.py).
 
+The tick splits in two (:meth:`NMPC.prepare`, called by the control loop after the currents
+went out): the preparation linearises every stage around the shifted plan, stage 0 at the
+state predicted for the next tick; the feedback (:meth:`NMPC.plan`) embeds the measured
+state into that QP, exactly for the linearised model, and solves it. Both run in a compiled
+kernel around HPIPM (:mod:`magrun.control.rti_kernel`); CasADi's HPIPM interface on the
+same QP is the fallback without a C compiler (no split there).
+
 ``"ipopt"``: the reference: the multiple-shooting NLP above solved to convergence by IPOPT
 with its exact Hessian, warm-started from the previous solution and multipliers shifted by
 one step. ``magrun bench nmpc`` measures both side by side.
@@ -627,9 +634,15 @@ class RTISolver(_Backend):
 
     QP variables, in HPIPM's order: [v₀, s₁, v₁, s₂, …, v_{N−1}, s_N] (s₀ is fixed, so stage 0
     has no state), with sₖ = (Xₖ, u_{k−1}) and vₖ = uₖ − u_{k−1}; constraints: the
-    linearised dynamics gaps only. One compiled function evaluates every stage's residuals,
-    Jacobians and dynamics gap around the current iterate and assembles H = JᵀJ, g = Jᵀr, the
-    gap rows and the step's bounds.
+    linearised dynamics gaps only; the cost's Gauss–Newton Hessian JᵀJ and gradient Jᵀr.
+
+    Two ways to the same QP (``NMPCConfig.rti_qp``): the compiled kernel
+    (:mod:`magrun.control.rti_kernel`; default) linearises every stage and fills HPIPM's
+    stage structures in C, and splits a tick into :meth:`prepare` (before the measurement,
+    stage 0 linearised at the predicted start) and the feedback in :meth:`solve` (the
+    measured start embedded, the QP solved). Without it, one compiled CasADi function
+    assembles the whole sparse QP around the iterate and CasADi's HPIPM interface solves it,
+    everything at the measurement.
     """
 
     def __init__(self, ocp: OCP) -> None:
@@ -842,8 +855,7 @@ class RTISolver(_Backend):
                 k.shift()
             budget = cfg.iterations
         self._aligned = True
-        iterations, corrections, status = 0, cfg.corrective_iterations, 0
-        info = np.zeros(5)
+        iterations, corrections = 0, cfg.corrective_iterations
         while iterations < budget:
             if not ready and not k.prepare(par, s0):
                 return self._failed(iterations + 1, "non-finite QP")
@@ -867,7 +879,8 @@ class RTISolver(_Backend):
         return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
 
     def _failed(self, iterations: int, message: str) -> SolveResult:
-        """A kernel tick that failed: without a plan before it, none now."""
+        """A kernel tick that failed. A trial's first tick leaves no plan; a later one leaves
+        the plan moved on to this tick, whose next currents :meth:`fallback` returns."""
         self.robust_retries = self.kernel.retries if self.kernel is not None else 0
         return SolveResult(False, np.zeros(self.ocp.nu), iterations, message)
 

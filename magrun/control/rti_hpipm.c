@@ -213,6 +213,17 @@ void rti_shift(void *handle) {
     memset(m->V + (RTI_N - 1) * RTI_NU, 0, sizeof(double) * RTI_NU);
 }
 
+/* stage k's state bounds, as bounds on the step from the iterate's state s */
+static void set_state_bounds(rti_mem *m, int k, const double *s) {
+    for (int i = 0; i < RTI_NB; ++i) {
+        double x = s[m->idxbx[i]];
+        m->lb[i] = m->s_lb[i] - x;
+        m->ub[i] = m->s_ub[i] - x;
+    }
+    d_ocp_qp_set_lbx(k, m->lb, &m->qp);
+    d_ocp_qp_set_ubx(k, m->ub, &m->qp);
+}
+
 static void eval_stage(rti_mem *m, const double *s, const double *v, const double *par) {
     m->arg_ptr[0] = s, m->arg_ptr[1] = v, m->arg_ptr[2] = par;
     m->res_ptr[0] = m->sn, m->res_ptr[1] = m->A, m->res_ptr[2] = m->B;
@@ -253,13 +264,7 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
             d_ocp_qp_set_S(k, m->Sc, &m->qp);
             d_ocp_qp_set_q(k, m->q, &m->qp);
             d_ocp_qp_set_r(k, m->rv, &m->qp);
-            for (int i = 0; i < RTI_NB; ++i) {
-                double x = s[m->idxbx[i]];
-                m->lb[i] = m->s_lb[i] - x;
-                m->ub[i] = m->s_ub[i] - x;
-            }
-            d_ocp_qp_set_lbx(k, m->lb, &m->qp);
-            d_ocp_qp_set_ubx(k, m->ub, &m->qp);
+            set_state_bounds(m, k, s);
         }
         for (int i = 0; i < RTI_NU; ++i) {
             m->lbu[i] = -m->du_max[i] - v[i];
@@ -278,13 +283,7 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
     tmul(RTI_NRT, RTI_NS, 1, m->JN, m->rN, m->q);
     d_ocp_qp_set_Q(RTI_N, m->Q, &m->qp);
     d_ocp_qp_set_q(RTI_N, m->q, &m->qp);
-    for (int i = 0; i < RTI_NB; ++i) {
-        double x = sN[m->idxbx[i]];
-        m->lb[i] = m->s_lb[i] - x;
-        m->ub[i] = m->s_ub[i] - x;
-    }
-    d_ocp_qp_set_lbx(RTI_N, m->lb, &m->qp);
-    d_ocp_qp_set_ubx(RTI_N, m->ub, &m->qp);
+    set_state_bounds(m, RTI_N, sN);
     return 0;
 }
 
