@@ -65,7 +65,7 @@ class Recording:
     recorder: dict[str, str]
     poses: dict[str, pd.DataFrame]  # stream -> columns t, x, y, theta
     currents: pd.DataFrame  # t, then one column per coil, A
-    status: pd.DataFrame  # t, solve_time, iterations, success, fallback, compute_time, ...
+    status: pd.DataFrame  # t, solve_time, prepare_time, iterations, success, fallback, ...
 
     @property
     def critical(self) -> str | None:
@@ -149,6 +149,8 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
                         {
                             "t_ns": t,
                             "solve_time": msg.solve_time,
+                            # recordings from before the field have none: no preparation
+                            "prepare_time": getattr(msg, "prepare_time", 0.0),
                             "iterations": msg.iterations,
                             "success": msg.success,
                             "fallback": msg.fallback,
@@ -182,7 +184,7 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
     st = pd.DataFrame(
         status,
         columns=[
-            "t_ns", "solve_time", "iterations", "success", "fallback",
+            "t_ns", "solve_time", "prepare_time", "iterations", "success", "fallback",
             "compute_time", "measurement", "tracking_lost",
         ],
     )  # fmt: skip

@@ -196,6 +196,7 @@ def trial_metrics(
         {
             "solve_ms_median": _q(st["solve_time"] * 1e3, 50),
             "solve_ms_p99": _q(st["solve_time"] * 1e3, 99),
+            "prepare_ms_median": _q(st["prepare_time"] * 1e3, 50),
             "compute_ms_median": _q(ct * 1e3, 50),
             "compute_ms_p99": _q(ct * 1e3, 99),
             "iterations_median": _q(st["iterations"], 50),

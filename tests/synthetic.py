@@ -41,6 +41,7 @@ class SynthTrial:
     critical: str = ""
     actual_every: int = 1  # log the actual pose every k-th tick only
     solve_times: list[float] | None = None  # s, one per tick
+    prepare_times: list[float] | None = None  # s, one per tick (None: the field left unset)
     fallback_ticks: tuple[int, ...] = ()
     dropped_ticks: int = 0
     seed: int = 0
@@ -123,6 +124,7 @@ def write_mcap(path: Path, s: SynthTrial) -> Path:
                     method=s.method, solve_time=solve[k], iterations=3, success=True,
                     fallback="hold" if k in s.fallback_ticks else "", compute_time=solve[k],
                     measurement=True,
+                    **({} if s.prepare_times is None else {"prepare_time": s.prepare_times[k]}),
                 ),
                 t_ns,
             )  # fmt: skip

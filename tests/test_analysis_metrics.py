@@ -175,6 +175,15 @@ def test_controller_statistics(tmp_path: Path) -> None:
     assert m["fallbacks"] == 2
     assert m["dropped_ticks"] == 4
     assert m["iterations_median"] == 3
+    assert m["prepare_ms_median"] == 0  # the field unset: no preparation
+
+
+def test_preparation_time_statistics(tmp_path: Path) -> None:
+    prepare = list(np.linspace(0.0001, 0.0003, 60))
+    s = SynthTrial("p", "m", prepare_times=prepare)
+    rec = read_recording(write_mcap(tmp_path / "t.mcap", s))
+    m = metrics.trial_metrics(rec, samples_of(rec))
+    assert m["prepare_ms_median"] == pytest.approx(np.median(prepare) * 1e3)
 
 
 def test_a_camera_slower_than_the_controller_leaves_gaps_not_wrong_matches(tmp_path: Path) -> None:
