@@ -10,7 +10,7 @@ import numpy as np
 
 from magrun.bench.machine import machine, ms
 
-STAGES = ("render", "track", "control", "plant")
+STAGES = ("render", "track", "control", "prepare", "plant")
 
 
 def _timed(fn: Callable[..., Any], into: list[float]) -> Callable[..., Any]:
@@ -43,7 +43,9 @@ def bench_tick(
     ``method`` trial, assembled as ``magrun run`` assembles it but with a frame every tick
     and no noise, runs ``ticks`` ticks of the real loop (:func:`magrun.loop.run_trial`, its
     safety layer included) with each stage timed: render (the rig's camera frame), track
-    (UNet window, keypoints, pose fit), control (estimator and planner), plant (the safety
+    (UNet window, keypoints, pose fit), control (estimator and planner: from the measurement
+    to the currents), prepare (the planner's preparation for the next tick, after the
+    currents went out: the NMPC's linearisation; ~0 for the other methods), plant (the safety
     layer's currents applied and one control period of the simulated rig). No recorder, no
     latency charged.
     """
@@ -75,6 +77,7 @@ def bench_tick(
     rig.observe = _timed(rig.observe, stages["render"])
     parts.tracker = _TimedTracker(parts.tracker, stages["track"])
     controller_.step = _timed(controller_.step, stages["control"])  # type: ignore[method-assign]
+    controller_.prepare = _timed(controller_.prepare, stages["prepare"])  # type: ignore[method-assign]
     plant: list[float] = []
     rig.apply = _timed(rig.apply, plant)
     rig.advance = _timed(rig.advance, plant)
