@@ -336,6 +336,31 @@ def test_feedback_embeds_the_measured_state_to_first_order(zernike_model, magnet
     assert gaps[0] / gaps[1] > 30, gaps
 
 
+def test_a_measurement_far_from_the_prediction_is_linearised_afresh(
+    zernike_model, magnet_robot
+) -> None:
+    """Where the model linearised at the prediction maps the measured state far from the
+    model itself (the embedding's defect above ``max_embedding_defect``), the feedback phase
+    linearises at the measurement instead: the unprepared tick's currents to 1e-12 A. Near
+    the prediction the defect is small (second order) and the preparation is used."""
+    ref_next = _problem("track")[1]
+    plain, state, _, currents = _warm(zernike_model, magnet_robot)
+    split, _, _, _ = _warm(zernike_model, magnet_robot)
+    x_p = plain.predict(state, currents)
+    far = x_p + np.array([2e-3, -2e-3, 0.8, 20e-3, -20e-3, 5.0])  # m, rad, m/s, rad/s
+    a = plain.plan(far, ref_next, currents)
+    split.prepare(x_p, ref_next, currents)
+    b = split.plan(far, ref_next, currents)
+    assert split.backend.relinearised == 1
+    assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
+    # close to the prediction: embedded, no second linearisation
+    split2, _, _, _ = _warm(zernike_model, magnet_robot)
+    near = x_p + 1e-3 * np.array([1e-3, -1e-3, 0.01, 1e-3, 1e-3, 0.01])
+    split2.prepare(x_p, ref_next, currents)
+    assert split2.plan(near, ref_next, currents).status.success
+    assert split2.backend.relinearised == 0
+
+
 def test_a_preparation_for_other_parameters_is_not_used(zernike_model, magnet_robot) -> None:
     """A tick whose reference or previous currents are not the prepared ones iterates from
     its own linearisation: the currents of the unprepared tick, to 1e-12 A."""

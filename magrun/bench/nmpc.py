@@ -138,6 +138,11 @@ def bench_nmpc(
                 "robust_retries": getattr(
                     getattr(controller.planner, "backend", None), "robust_retries", 0
                 ),
+                # RTI: prepared ticks whose measurement was too far from the prediction for
+                # the linearisation there (NMPCConfig.max_embedding_defect), linearised afresh
+                "relinearised_ticks": getattr(
+                    getattr(controller.planner, "backend", None), "relinearised", 0
+                ),
                 "achievable_rate_hz": float(1.0 / np.median(solve)),
                 "rms_position_mm": log.rms_position_mm,
                 "rms_orientation_deg": log.rms_orientation_deg,

@@ -43,7 +43,7 @@
 typedef struct {
     double S[RTI_N * RTI_NS]; /* s_1 … s_N, one after another */
     double V[RTI_N * RTI_NU]; /* v_0 … v_{N-1} */
-    double s_lin[RTI_NS];
+    double s_lin[RTI_NS], par0[RTI_NP];
     /* stage 0's linearisation, for the feedback */
     double A0[RTI_NS * RTI_NS], gap0[RTI_NS], r0[RTI_NR], Js0[RTI_NR * RTI_NS],
         Jv0[RTI_NR * RTI_NU];
@@ -236,6 +236,7 @@ static void eval_stage(rti_mem *m, const double *s, const double *v, const doubl
 int rti_prepare(void *handle, const double *par, const double *s_lin) {
     rti_mem *m = handle;
     memcpy(m->s_lin, s_lin, sizeof(m->s_lin));
+    memcpy(m->par0, par, sizeof(m->par0));
     for (int k = 0; k < RTI_N; ++k) {
         const double *s = k == 0 ? s_lin : m->S + (k - 1) * RTI_NS;
         const double *v = m->V + k * RTI_NU;
@@ -289,12 +290,30 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
 
 /* Embed the start s0 into the prepared QP, solve it, and take the step. info (out):
  * [max |step|, HPIPM iterations, HPIPM status, the heading residual at (X_0, u_0) (0 without
- * the term), 1 if the robust mode solved it]. 0 on success, else HPIPM's status (the iterate
+ * the term), 1 if the robust mode solved it, the embedding's defect]. The defect is
+ * |f(s0, v0) - (f(s_lin, v0) + A0 (s0 - s_lin))|_inf (scaled units): how far stage 0
+ * linearised at s_lin is from the stage itself at s0. Above max_defect nothing is solved and
+ * the return is -2 (linearise at s0 instead). 0 on success, else HPIPM's status (the iterate
  * is then unchanged). */
-int rti_feedback(void *handle, const double *s0, double *info) {
+int rti_feedback(void *handle, const double *s0, double *info, double max_defect) {
     rti_mem *m = handle;
     double ds[RTI_NS], e[RTI_NR];
-    for (int i = 0; i < RTI_NS; ++i) ds[i] = s0[i] - m->s_lin[i];
+    int moved = 0;
+    for (int i = 0; i < RTI_NS; ++i) {
+        ds[i] = s0[i] - m->s_lin[i];
+        moved |= ds[i] != 0.0;
+    }
+    double defect = 0.0;
+    if (moved) {
+        eval_stage(m, s0, m->V, m->par0);
+        for (int i = 0; i < RTI_NS; ++i) {
+            double lin = m->gap0[i] + m->S[i];
+            for (int j = 0; j < RTI_NS; ++j) lin += m->A0[i + j * RTI_NS] * ds[j];
+            defect = fmax(defect, fabs(m->sn[i] - lin));
+        }
+    }
+    info[5] = defect;
+    if (!(defect <= max_defect)) return -2;
     for (int i = 0; i < RTI_NS; ++i) {
         double acc = m->gap0[i];
         for (int j = 0; j < RTI_NS; ++j) acc += m->A0[i + j * RTI_NS] * ds[j];

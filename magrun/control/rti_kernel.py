@@ -162,7 +162,7 @@ class RTIKernel:
             getattr(lib, f).argtypes = [ctypes.c_void_p, _double_p, _double_p]
         lib.rti_shift.argtypes = [ctypes.c_void_p]
         lib.rti_prepare.argtypes = [ctypes.c_void_p, _double_p, _double_p]
-        lib.rti_feedback.argtypes = [ctypes.c_void_p, _double_p, _double_p]
+        lib.rti_feedback.argtypes = [ctypes.c_void_p, _double_p, _double_p, ctypes.c_double]
         lib.rti_retries.argtypes = [ctypes.c_void_p]
         lib.rti_set_fast_iter_max.argtypes = [ctypes.c_void_p, ctypes.c_int]
         lib.rti_predict.argtypes = [ctypes.c_void_p, _double_p, _double_p, _double_p]
@@ -178,7 +178,7 @@ class RTIKernel:
         if not handle:
             raise MemoryError("the NMPC's QP kernel could not allocate its memory")
         self._handle: ctypes.c_void_p | None = ctypes.c_void_p(handle)
-        self._info = np.zeros(5)
+        self._info = np.zeros(6)
         self._info_p = _ptr(self._info)
 
     def __del__(self) -> None:
@@ -210,11 +210,14 @@ class RTIKernel:
         s = np.ascontiguousarray(s_lin, dtype=np.float64)
         return self._lib.rti_prepare(self._handle, _ptr(p), _ptr(s)) == 0
 
-    def feedback(self, s0: FloatArray) -> tuple[int, FloatArray]:
-        """Embed the start ``s0``, solve, step: HPIPM's status (0: solved, the iterate moved)
-        and [max |step|, QP iterations, status, heading residual at stage 0, robust retry]."""
+    def feedback(self, s0: FloatArray, max_defect: float = np.inf) -> tuple[int, FloatArray]:
+        """Embed the start ``s0``, solve, step: HPIPM's status (0: solved, the iterate moved;
+        -2: the embedding's defect exceeded ``max_defect``, nothing solved) and [max |step|,
+        QP iterations, status, heading residual at stage 0, robust retry, the defect]: how
+        far stage 0 linearised at the prepared point is from the stage at ``s0``, ∞-norm
+        in scaled units."""
         s = np.ascontiguousarray(s0, dtype=np.float64)
-        status = self._lib.rti_feedback(self._handle, _ptr(s), self._info_p)
+        status = self._lib.rti_feedback(self._handle, _ptr(s), self._info_p, float(max_defect))
         return int(status), self._info
 
     def predict(self, X: FloatArray, u: FloatArray) -> FloatArray:
