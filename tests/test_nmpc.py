@@ -284,9 +284,9 @@ def test_rti_prediction_is_the_model_step(zernike_model, magnet_robot) -> None:
 # -- the real-time iteration's preparation / feedback split --------------------------------------
 
 
-def _warm(model, robot) -> tuple[NMPC, np.ndarray, np.ndarray, np.ndarray]:
+def _warm(model, robot, **config: float) -> tuple[NMPC, np.ndarray, np.ndarray, np.ndarray]:
     """An NMPC with a converged plan of the 'track' problem, and that problem."""
-    nmpc = NMPC(model, robot, NMPCConfig(**CONVERGE))
+    nmpc = NMPC(model, robot, NMPCConfig(**CONVERGE, **config))  # type: ignore[arg-type]
     if nmpc.backend.kernel is None:
         pytest.skip("the split needs the compiled kernel (no C compiler here)")
     state, ref, previous = _problem("track")
@@ -345,7 +345,7 @@ def test_a_measurement_far_from_the_prediction_is_linearised_afresh(
     the prediction the defect is small (second order) and the preparation is used."""
     ref_next = _problem("track")[1]
     plain, state, _, currents = _warm(zernike_model, magnet_robot)
-    split, _, _, _ = _warm(zernike_model, magnet_robot)
+    split, _, _, _ = _warm(zernike_model, magnet_robot, max_embedding_defect=1e-3)
     x_p = plain.predict(state, currents)
     far = x_p + np.array([2e-3, -2e-3, 0.8, 20e-3, -20e-3, 5.0])  # m, rad, m/s, rad/s
     a = plain.plan(far, ref_next, currents)
@@ -354,7 +354,7 @@ def test_a_measurement_far_from_the_prediction_is_linearised_afresh(
     assert split.backend.relinearised == 1
     assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
     # close to the prediction: embedded, no second linearisation
-    split2, _, _, _ = _warm(zernike_model, magnet_robot)
+    split2, _, _, _ = _warm(zernike_model, magnet_robot, max_embedding_defect=1e-3)
     near = x_p + 1e-3 * np.array([1e-3, -1e-3, 0.01, 1e-3, 1e-3, 0.01])
     split2.prepare(x_p, ref_next, currents)
     assert split2.plan(near, ref_next, currents).status.success
