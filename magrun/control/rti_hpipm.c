@@ -303,22 +303,18 @@ int rti_feedback(void *handle, const double *s0, double *info, double max_defect
         ds[i] = s0[i] - m->s_lin[i];
         moved |= ds[i] != 0.0;
     }
-    double defect = 0.0;
-    if (moved) {
-        eval_stage(m, s0, m->V, m->par0);
-        for (int i = 0; i < RTI_NS; ++i) {
-            double lin = m->gap0[i] + m->S[i];
-            for (int j = 0; j < RTI_NS; ++j) lin += m->A0[i + j * RTI_NS] * ds[j];
-            defect = fmax(defect, fabs(m->sn[i] - lin));
-        }
-    }
-    info[5] = defect;
-    if (!(defect <= max_defect)) return -2;
-    for (int i = 0; i < RTI_NS; ++i) {
+    for (int i = 0; i < RTI_NS; ++i) { /* the linearised stage 0's gap at s0 */
         double acc = m->gap0[i];
         for (int j = 0; j < RTI_NS; ++j) acc += m->A0[i + j * RTI_NS] * ds[j];
         m->b[i] = acc;
     }
+    double defect = 0.0; /* linearised next state (b + s_1) against the stage's own at s0 */
+    if (moved) {
+        eval_stage(m, s0, m->V, m->par0);
+        for (int i = 0; i < RTI_NS; ++i) defect = fmax(defect, fabs(m->sn[i] - m->b[i] - m->S[i]));
+    }
+    info[5] = defect;
+    if (!(defect <= max_defect)) return -2;
     for (int l = 0; l < RTI_NR; ++l) {
         double acc = m->r0[l];
         for (int j = 0; j < RTI_NS; ++j) acc += m->Js0[l + j * RTI_NR] * ds[j];
