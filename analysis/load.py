@@ -254,13 +254,16 @@ def samples_of(rec: Recording, tolerance: float | None = None) -> pd.DataFrame:
     (nearest message within ``tolerance`` s, default half a control period), so a rig whose
     camera runs at another rate than the controller is handled. Errors: ``position_error_mm``
     and ``orientation_error_deg`` (actual vs desired, the angle wrapped to ±180°), and
-    ``prediction_*`` (actual vs the prediction made at the previous tick).
+    ``prediction_*`` (actual vs the prediction made at the previous tick), and
+    ``prediction_measured_*`` (the measured pose, where a measurement arrived, vs that
+    prediction: what a real rig, which knows no truth, can compute).
     """
     if tolerance is None:
         tolerance = 0.5 * rec.control_period()
     tol_ns = round(tolerance * 1e9) if math.isfinite(tolerance) else 0
     out = rec.poses["desired"].rename(columns={"x": "x_des", "y": "y_des", "theta": "theta_des"})
-    for stream, suffix in (("actual", ""), ("predicted", "_pred"), ("estimated", "_est")):
+    streams = (("actual", ""), ("predicted", "_pred"), ("estimated", "_est"), ("measured", "_meas"))
+    for stream, suffix in streams:
         other = (
             rec.poses[stream]
             .drop(columns="t")
@@ -276,6 +279,10 @@ def samples_of(rec: Recording, tolerance: float | None = None) -> pd.DataFrame:
     pos, ang = metrics.pose_errors(actual, out[["x_pred", "y_pred", "theta_pred"]].to_numpy())
     out["prediction_position_error_mm"] = pos * 1e3
     out["prediction_orientation_error_deg"] = np.degrees(ang)
+    measured = out[["x_meas", "y_meas", "theta_meas"]].to_numpy()
+    pos, ang = metrics.pose_errors(measured, out[["x_pred", "y_pred", "theta_pred"]].to_numpy())
+    out["prediction_measured_position_error_mm"] = pos * 1e3
+    out["prediction_measured_orientation_error_deg"] = np.degrees(ang)
     if rec.critical and rec.critical in rec.boundaries and rec.robot_length is not None:
         out["clearance_mm"] = 1e3 * metrics.capsule_clearance(
             actual, rec.robot_length, rec.robot_diameter or 0.0, rec.boundaries[rec.critical]

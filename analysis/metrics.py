@@ -49,6 +49,12 @@ class TrialRecord(Protocol):
     @property
     def recorder(self) -> dict[str, str]: ...  # the recorder's summary (dropped_ticks)
 
+    @property
+    def currents(self) -> pd.DataFrame: ...  # t (s), then one column per coil, A
+
+    @property
+    def trial(self) -> dict[str, Any]: ...  # the trial's metadata (max_current_a)
+
     def control_period(self) -> float: ...  # s
 
 
@@ -168,7 +174,14 @@ def trial_metrics(
         "max_position_mm": _q(samples["position_error_mm"], 100),
         "rms_prediction_position_mm": rms(samples["prediction_position_error_mm"]),
         "rms_prediction_orientation_deg": rms(samples["prediction_orientation_error_deg"]),
+        "rms_prediction_measured_position_mm": rms(
+            samples["prediction_measured_position_error_mm"]
+        ),
+        "rms_prediction_measured_orientation_deg": rms(
+            samples["prediction_measured_orientation_error_deg"]
+        ),
     }
+    out.update(coil_effort(rec.currents, rec.trial.get("max_current_a")))
     # clearance from every boundary, and contact with any
     t = samples["t"].to_numpy()
     actual = samples[["x", "y", "theta"]].to_numpy()
@@ -211,6 +224,46 @@ def trial_metrics(
             "dropped_ticks": _int_or_nan(rec.recorder.get("dropped_ticks")),
         }
     )  # fmt: skip
+    return out
+
+
+#: a current within this fraction of its limit counts as at the limit
+AT_LIMIT = 0.995
+
+
+def coil_effort(currents: pd.DataFrame, limits: Any = None) -> dict[str, float]:
+    """The coils' effort over a trial from its applied currents (``t`` in s, then one column
+    per coil in A; each value holds until the next sample):
+
+    - ``rms_current_a[<coil>]`` per coil and ``rms_current_a`` over all coils;
+    - ``current_squared_integral_a2s``: ∫ Σₖ Iₖ² dt, A² s (the coils' heat, per ohm);
+    - ``current_variation_a``: the currents' total variation Σₖ Σ |ΔIₖ|, A (chatter);
+    - ``time_at_limit_s``: time during which any coil is within 0.5 % of its limit, s, where
+      the recording states its limits (``max_current_a``: one number, or one per coil);
+      NaN where it does not.
+    """
+    coils = [c for c in currents.columns if c not in ("t", "t_ns")]
+    out: dict[str, float] = {}
+    if not coils or len(currents) == 0:
+        return {"rms_current_a": math.nan, "current_squared_integral_a2s": math.nan,
+                "current_variation_a": math.nan, "time_at_limit_s": math.nan}  # fmt: skip
+    I = currents[coils].to_numpy(dtype=np.float64)
+    t = currents["t"].to_numpy(dtype=np.float64)
+    dt = np.diff(t, append=t[-1] + (np.median(np.diff(t)) if t.size > 1 else 0.0))
+    for k, name in enumerate(coils):
+        out[f"rms_current_a[{name}]"] = rms(I[:, k])
+    out["rms_current_a"] = rms(I)
+    out["current_squared_integral_a2s"] = float(np.sum(np.sum(I * I, axis=1) * dt))
+    out["current_variation_a"] = float(np.sum(np.abs(np.diff(I, axis=0))))
+    try:
+        lim = np.broadcast_to(np.asarray(limits, dtype=np.float64), (len(coils),))
+    except (TypeError, ValueError):
+        lim = None
+    if lim is None or not np.all(np.isfinite(lim) & (lim > 0)):
+        out["time_at_limit_s"] = math.nan
+    else:
+        at = np.any(np.abs(I) >= AT_LIMIT * lim, axis=1)
+        out["time_at_limit_s"] = float(np.sum(dt[at]))
     return out
 
 

@@ -106,6 +106,21 @@ class TrialLog:
         return float(np.degrees(np.sqrt(np.mean(d**2))))
 
     @property
+    def rms_prediction_measured_position_mm(self) -> float:
+        """RMS of the measured pose against the previous tick's prediction of it, over the
+        ticks where a measurement arrived (what a real rig can compute; NaN: none)."""
+        d = self.measured[1:, :2] - self.predicted[1:, :2]
+        e = np.sum(d**2, axis=1)
+        e = e[np.isfinite(e)]
+        return float(np.sqrt(np.mean(e)) * 1e3) if e.size else math.nan
+
+    @property
+    def rms_prediction_measured_orientation_deg(self) -> float:
+        d = wrap_angle(self.measured[1:, 2] - self.predicted[1:, 2])
+        d = d[np.isfinite(d)]
+        return float(np.degrees(np.sqrt(np.mean(d**2)))) if d.size else math.nan
+
+    @property
     def solve_times(self) -> FloatArray:
         return np.array([s.solve_time for s in self.status])
 
@@ -190,7 +205,8 @@ def run_trial(
         t0 = clock()
         camera_pose: FloatArray | None = None
         if tracker is None:  # the rig's pose (NaN: its own tracking lost the robot)
-            camera_pose = obs.pose if np.all(np.isfinite(obs.pose)) else None
+            seen = obs.pose if obs.camera_pose is None else obs.camera_pose
+            camera_pose = seen if np.all(np.isfinite(seen)) else None
         elif not take:
             pass  # no frame due: nothing to track, nothing delivered
         elif obs.frame is None:
@@ -199,7 +215,9 @@ def run_trial(
             camera_pose = tracker(obs.frame)
         z = feedback(obs.t, camera_pose) if take else None
         window = reference.pose(obs.t + offsets)
-        out = controller.step(z, window)
+        # a frame's age (its time stamp): the controller fuses it where it was taken
+        age = obs.t - obs.frame_time if z is not None and obs.frame_time is not None else 0.0
+        out = controller.step(z, window, age)
         c = clock() - t0
         charged = c if measured else declared
         period = max(dt, charged)

@@ -47,6 +47,7 @@ from pydantic import (
 )
 
 from magrun.control import METHODS
+from magrun.rigs.plant import Imperfections
 
 if TYPE_CHECKING:
     from magrun.robot import RobotParams
@@ -360,11 +361,124 @@ class SafetySettings(_Strict):
     )
 
 
-class SimulationSettings(_Strict):
-    """The simulated rig's plant: how far each trial's robot and coils are from the models'
-    nominal ones. Each factor is log-normal, exp(N(0, σ²)), drawn per trial from its seed
-    (or once, from ``plant_seed``); the draw is recorded (MCAP metadata record ``plant``)."""
+def _bounded(upper: float, description: str) -> Any:
+    """An optional non-negative setting up to ``upper`` (None: the preset's value)."""
+    return Field(None, ge=0, le=upper, allow_inf_nan=False, description=description)
 
+
+class PlantTerms(_Strict):
+    """A real bench's imperfections (:mod:`magrun.rigs.plant`), unit-suffixed. In a plant file
+    (and a preset) a key left out is off; in a protocol's ``simulation`` it is the plant's."""
+
+    frame_age_ms: float | None = _bounded(
+        2000, "Mean age of a camera or fluoroscopy frame: it shows the robot this long ago, ms."
+    )
+    frame_age_jitter_ms: float | None = _bounded(
+        500, "σ of a frame's age about its mean, per frame (truncated at 0), ms."
+    )
+    amplifier_tau_ms: float | None = _bounded(
+        1000,
+        "Time constant of each amplifier's first-order current lag (on top of the slew limit), ms.",
+    )
+    coil_offset_mm: float | None = _bounded(
+        20, "σ of each coil's in-plane placement error, per axis, mm (drawn per plant)."
+    )
+    coil_rotation_deg: float | None = _bounded(
+        30, "σ of each coil's in-plane rotation error about its centre, degrees (per plant)."
+    )
+    residual_field_mt: float | None = _bounded(
+        50,
+        "RMS over the workspace of each coil's unmodelled smooth field at its current limit, mT.",
+    )
+    moment_misalignment_deg: float | None = _bounded(
+        45, "σ of the magnetic moment's angle off the body axis, degrees (per plant)."
+    )
+    friction_mm_s: float | None = _bounded(
+        100,
+        "Kinetic Coulomb friction on the floor, as the drag speed it equals "
+        "(force = drag_parallel × this), mm/s.",
+    )
+    stiction_mm_s: float | None = _bounded(
+        100,
+        "Static friction threshold, as a drag speed (below friction_mm_s: friction_mm_s), mm/s.",
+    )
+    rotational_friction_deg_s: float | None = _bounded(
+        3600, "Kinetic friction torque, as the turning rate whose drag it equals, deg/s."
+    )
+    rotational_stiction_deg_s: float | None = _bounded(
+        3600, "Static friction torque threshold, as a turning rate's drag, deg/s."
+    )
+    flow_sigma_mm_s: float | None = _bounded(
+        100,
+        "σ of the fluid's Ornstein–Uhlenbeck velocity, mm/s (along the channel in a phantom "
+        "with a path, per axis in the open workspace).",
+    )
+    flow_time_s: float | None = Field(
+        None, gt=0, le=3600, allow_inf_nan=False,
+        description="Correlation time of the flow, s (default 1).",
+    )  # fmt: skip
+    tracker_sigma_mm: float | None = _bounded(
+        20, "The camera pipeline's own white noise on each frame's position, per axis, mm."
+    )
+    tracker_sigma_deg: float | None = _bounded(
+        90, "The camera pipeline's own white noise on each frame's heading, degrees."
+    )
+    outlier_rate: float | None = Field(
+        None, ge=0, lt=1, allow_inf_nan=False,
+        description="Fraction of frames whose position is an outlier.",
+    )  # fmt: skip
+    outlier_mm: float | None = _bounded(100, "σ of an outlier's displacement, per axis, mm.")
+    drop_rate: float | None = Field(
+        None, ge=0, lt=1, allow_inf_nan=False,
+        description="Fraction of frames dropped (nothing delivered).",
+    )  # fmt: skip
+
+    def terms(self) -> dict[str, float]:
+        """The settings given (not None), unit-suffixed as written."""
+        return {k: v for k, v in self.model_dump().items() if k in PLANT_KEYS and v is not None}
+
+
+#: the keys of a plant's imperfections (:class:`PlantTerms`)
+PLANT_KEYS = tuple(PlantTerms.model_fields)
+
+#: presets shipped with magrun (``magrun/data/plants/<name>.yaml``)
+PLANT_PRESETS = ("ideal", "bench", "clinical")
+
+
+class PlantFile(PlantTerms):
+    """A plant file (``simulation.plant: FILE``; the presets are plant files too)."""
+
+    description: str = ""
+
+
+def plant_file_path(name: str) -> Path:
+    """A preset's plant file."""
+    from importlib import resources
+
+    return Path(str(resources.files("magrun") / "data" / "plants" / f"{name}.yaml"))
+
+
+def load_plant_file(path: str | Path) -> PlantFile:
+    """Read and validate a plant file (raises :class:`~magrun.yamlio.YamlModelError`)."""
+    return load_yaml_model(path, PlantFile)
+
+
+class SimulationSettings(PlantTerms):
+    """The simulated rig's plant: how far each trial's robot and coils are from the models'
+    nominal ones, and which real bench's imperfections it has.
+
+    The robot and coil factors are log-normal, exp(N(0, σ²)), drawn per trial from its seed
+    (or once, from ``plant_seed``); the draw is recorded (MCAP metadata record ``plant``).
+    ``plant`` picks a preset (``ideal``: none of the imperfections; ``bench``: the paper's
+    bench; ``clinical``: a C-arm) or a plant file; any imperfection given here overrides it."""
+
+    plant: str = Field(
+        "ideal",
+        description=(
+            "The plant's imperfections: ideal, bench, clinical, or a plant file (YAML, "
+            "relative to the protocol file's folder); settings given here override it."
+        ),
+    )
     mass_sigma: NonNegativeFloat = Field(0.1, description="σ of the mass (and inertia) factor.")
     drag_sigma: NonNegativeFloat = Field(0.1, description="σ of the drag coefficients' factor.")
     moment_sigma: NonNegativeFloat = Field(0.05, description="σ of the magnetic moment's factor.")
@@ -378,6 +492,50 @@ class SimulationSettings(_Strict):
             "the same robot and coils, as on one real rig (the feedback noise and camera still "
             "follow the trial's seed). Calibrate that rig with magrun identify."
         ),
+    )
+
+    @field_validator("plant")
+    @classmethod
+    def _plant(cls, value: str, info: ValidationInfo) -> str:
+        if value in PLANT_PRESETS:
+            return value
+        return _checked_file(value, info, load_plant_file)
+
+    def plant_terms(self) -> dict[str, float]:
+        """Every imperfection, unit-suffixed: the preset's or plant file's, overridden by
+        those given here; 0 where neither gives one (``flow_time_s``: 1)."""
+        path = plant_file_path(self.plant) if self.plant in PLANT_PRESETS else Path(self.plant)
+        merged = dict.fromkeys(PLANT_KEYS, 0.0) | {"flow_time_s": 1.0}
+        merged |= load_plant_file(path).terms()
+        return merged | self.terms()
+
+    def imperfections(self) -> Imperfections:
+        """:meth:`plant_terms` in SI, as the simulated rig takes them."""
+        return imperfections_from_terms(self.plant_terms())
+
+
+def imperfections_from_terms(t: dict[str, float]) -> Imperfections:
+    """Unit-suffixed plant terms (:class:`PlantTerms`) as :class:`Imperfections` (SI)."""
+    deg = math.radians
+    return Imperfections(
+        frame_age=t["frame_age_ms"] * 1e-3,
+        frame_age_jitter=t["frame_age_jitter_ms"] * 1e-3,
+        amplifier_tau=t["amplifier_tau_ms"] * 1e-3,
+        coil_offset=t["coil_offset_mm"] * 1e-3,
+        coil_rotation=deg(t["coil_rotation_deg"]),
+        residual_field=t["residual_field_mt"] * 1e-3,
+        moment_misalignment=deg(t["moment_misalignment_deg"]),
+        friction=t["friction_mm_s"] * 1e-3,
+        stiction=t["stiction_mm_s"] * 1e-3,
+        rotational_friction=deg(t["rotational_friction_deg_s"]),
+        rotational_stiction=deg(t["rotational_stiction_deg_s"]),
+        flow_sigma=t["flow_sigma_mm_s"] * 1e-3,
+        flow_time=t["flow_time_s"],
+        tracker_position=t["tracker_sigma_mm"] * 1e-3,
+        tracker_heading=deg(t["tracker_sigma_deg"]),
+        outlier_rate=t["outlier_rate"],
+        outlier_size=t["outlier_mm"] * 1e-3,
+        drop_rate=t["drop_rate"],
     )
 
 

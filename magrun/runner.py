@@ -76,15 +76,21 @@ PLANT_FIELDS = (
 
 def plant_record(rig: Any) -> dict[str, str]:
     """The MCAP ``plant`` record of a simulated rig: the trial's drawn robot parameters (SI),
-    the nominal ones, and each channel's coil gain; values JSON."""
+    the nominal ones, each channel's coil gain, and on a plant with imperfections their
+    settings (SI, :class:`~magrun.rigs.plant.Imperfections`) and per-plant draws (each coil's
+    placement error, the moment's misalignment); values JSON."""
     true, nominal = rig.robot, rig.nominal_robot
-    return {
+    record = {
         "robot": json.dumps({f: getattr(true, f) for f in PLANT_FIELDS}),
         "nominal_robot": json.dumps({f: getattr(nominal, f) for f in PLANT_FIELDS}),
         "coil_gains": json.dumps(
             dict(zip(rig.channel_names, np.asarray(rig.coil_gains).tolist(), strict=True))
         ),
     }
+    if not rig.imperfections.ideal:  # a bench's imperfections: the settings (SI) and draws
+        record["imperfections"] = json.dumps(rig.imperfections.as_dict())
+        record["draw"] = json.dumps(rig.plant_draw.record(tuple(rig.channel_names)))
+    return record
 
 
 def execute_trial(
@@ -122,6 +128,9 @@ def execute_trial(
             "robot_length_m": robot.length,
             "robot_diameter_m": robot.diameter,
             "control_rate_hz": protocol.controller.rate_hz,
+            "max_current_a": np.broadcast_to(
+                np.asarray(controller.max_current, dtype=np.float64), (controller.n_channels,)
+            ).tolist(),
             "latency_ms": _latency_ms(protocol.controller.latency),
             "charge_compute_time": protocol.controller.latency == "measured",
             "feedback": "camera" if tracker is not None else "truth",
@@ -194,6 +203,8 @@ def execute_trial(
             rms_orientation_deg=log.rms_orientation_deg,
             rms_prediction_position_mm=log.rms_prediction_position_mm,
             rms_prediction_orientation_deg=log.rms_prediction_orientation_deg,
+            rms_prediction_measured_position_mm=log.rms_prediction_measured_position_mm,
+            rms_prediction_measured_orientation_deg=log.rms_prediction_measured_orientation_deg,
             overruns=int(np.count_nonzero(log.compute_time > controller.dt)),
             median_compute_ms=float(np.median(log.compute_time) * 1e3),
             **health,

@@ -56,6 +56,7 @@ from magrun.protocol import (
     condition_slug,
 )
 from magrun.records import Tick
+from magrun.rigs.plant import ImperfectTracker
 from magrun.robot import RobotParams
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
@@ -82,6 +83,7 @@ class Scene:
     boundaries: dict[str, Any]
     critical: str | None
     half_width: float  # m, half the side of the square workspace
+    channel: FloatArray | None = None  # a phantom's path (m), along which its fluid flows
 
 
 def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
@@ -109,8 +111,9 @@ def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
     if phantom is not None:
         box = Walls.box(half_width)
         return Scene(
-            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, half_width
-        )
+            reference, phantom.walls() + box, phantom.boundaries, phantom.critical, half_width,
+            phantom.path,
+        )  # fmt: skip
     return Scene(reference, None, {}, None, half_width)
 
 
@@ -157,11 +160,12 @@ def make_rig(
     watchdog_s: float = 0.1,
     coils: CoilSystem | None = None,
     simulation: SimulationSettings | None = None,
+    flow_path: FloatArray | None = None,
 ) -> Any:
     """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``coils``: default
     the paper's; its plant drawn around ``robot`` as ``simulation`` says, default the
-    protocol's defaults) or the hardware rig a :class:`HardwareSpec` names (not yet
-    connected)."""
+    protocol's defaults; its flow along ``flow_path`` where given) or the hardware rig a
+    :class:`HardwareSpec` names (not yet connected)."""
     if isinstance(kind, HardwareSpec):
         from magrun.rigs.cameras import camera_source
         from magrun.rigs.drivers import load_driver
@@ -184,6 +188,7 @@ def make_rig(
     return SimRig.default(
         robot=robot, walls=walls, perturbation=perturbation, seed=seed,
         camera=CameraConfig() if camera else None, coils=coils, plant_seed=sim.plant_seed,
+        imperfections=sim.imperfections(), flow_path=flow_path,
     )  # fmt: skip
 
 
@@ -367,7 +372,7 @@ def assemble(
     simulated = rig == "sim"
     the_rig = make_rig(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
-        protocol.safety.stall_timeout_ms * 1e-3, coils, protocol.simulation,
+        protocol.safety.stall_timeout_ms * 1e-3, coils, protocol.simulation, scene.channel,
     )  # fmt: skip
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver
@@ -380,11 +385,13 @@ def assemble(
             )
         # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
         # camera (its observations' poses), the loop's feedback derives from them
-        tracker = (
+        tracker: PoseTracker | None = (
             Tracker.default(the_rig.camera, the_rig.nominal_robot)
             if simulated and the_rig.camera
             else None
         )
+        if tracker is not None and the_rig.tracking_errors is not None:
+            tracker = ImperfectTracker(tracker, the_rig.tracking_errors)  # a bench's pipeline
         condition = trial.condition
         feedback = FluoroscopyMimic(
             condition.rate_hz, condition.noise_position_m, condition.noise_heading_rad,

@@ -165,3 +165,70 @@ def test_linear_model_matches_the_exponential_integrator(magnet_robot) -> None:
     Ad, Bd = linear_model(magnet_robot, theta, 0.04)
     ours = _substep_with_wrench(tuple(x0), ((w[0], w[1]), w[2]), magnet_robot, 0.04, NUMPY_OPS)
     assert_allclose(Ad @ x0 + Bd @ w, ours, rtol=1e-9, atol=1e-15)
+
+
+class _DriftPlanner(Planner):
+    """A planner whose model moves the pose by the currents (a fixed, nonlinear map): enough
+    for the estimation tests, which replace planning by given currents."""
+
+    def reset(self) -> None:
+        pass
+
+    def plan(self, state, reference, previous) -> Plan:
+        raise NotImplementedError("the tests replay currents")
+
+    def predict(self, state, currents) -> np.ndarray:
+        s = np.asarray(state, dtype=np.float64)
+        v = np.array([currents[0], currents[1], currents[2]]) * 1e-4
+        v[0] += 1e-4 * np.sin(20.0 * s[1])  # the step depends on where it starts
+        return np.concatenate([s[:3] + v * 0.04, v])
+
+
+def _estimator(kind: str):
+    from magrun.control.estimation import KalmanConfig, KalmanPoseFilter, MeasurementOrPrediction
+
+    return KalmanPoseFilter(KalmanConfig()) if kind == "kalman" else MeasurementOrPrediction()
+
+
+@pytest.mark.parametrize("kind", ["kalman", "measurement"])
+def test_a_late_measurement_gives_the_estimate_of_one_fused_in_time(kind: str) -> None:
+    """Measurements taken every 3rd tick and delivered 2 ticks (2.3 periods) late: where the
+    late controller has received what the in-time one had, their estimates agree (1e-12)."""
+    dt = 0.04
+    rng = np.random.default_rng(4)
+    currents = rng.normal(0.0, 3.0, (60, 3))
+    truth = np.cumsum(currents * 4e-6, axis=0)
+    measured = truth + rng.normal(0.0, 5e-4, truth.shape)
+
+    def controller() -> Controller:
+        velocity = "model" if kind == "kalman" else "difference"
+        c = Controller("t", _estimator(kind), _DriftPlanner(), dt, 30.0, 1e4, 3, velocity=velocity)
+        c.reset(np.zeros(3))
+        return c
+
+    on_time, late = controller(), controller()
+    compared = 0
+    for k in range(60):
+        z_now = measured[k] if k % 3 == 0 else None
+        a, _ = on_time.replay_step(z_now, currents[k])
+        z_late = measured[k - 2] if k >= 2 and (k - 2) % 3 == 0 else None
+        b, _ = late.replay_step(z_late, currents[k], age=2.3 * dt if z_late is not None else 0.0)
+        if z_late is not None:
+            assert_allclose(b, a, rtol=0, atol=1e-12)
+            compared += 1
+    assert compared == 20
+    assert late.late_fused == 20
+
+
+def test_a_measurement_older_than_the_memory_is_dropped() -> None:
+    from magrun.control.base import MEMORY
+
+    c = Controller("t", _estimator("kalman"), _DriftPlanner(), 0.04, 30.0, 1e4, 3, velocity="model")
+    c.reset(np.zeros(3))
+    for _ in range(5):
+        c.replay_step(None, np.ones(3))
+    before, _ = c.replay_step(None, np.ones(3))
+    after, _ = c.replay_step(np.full(3, 0.01), np.ones(3), age=0.04 * (MEMORY + 5))
+    assert c.late_dropped == 1
+    assert c.late_fused == 0
+    assert np.linalg.norm(after - before) < 1e-4  # the 10 mm measurement was not fused

@@ -17,6 +17,15 @@ at every fluoroscopy frame, so the difference spikes there (~20 mm/s at 3 Hz and
 the drag-dominated robot's velocity is set by the field within a few ms, and the model's
 prediction of it is what the plan needs.
 
+A measurement may describe the robot as it was some time ago (``step(..., age=s)``: a
+camera's or C-arm's frame age, known from the frame's time stamp). The controller then fuses
+it at the tick it was taken, nearest ``age``: it goes back to its state at the start of that
+tick (it keeps the last :data:`MEMORY` ticks: the estimator's state, the measurements fused
+and the currents applied), fuses the measurement there with those of that tick, and runs
+the estimation and the model's prediction forward again with the currents applied since, to
+this tick. With every measurement on time this is the usual tick; with every measurement
+late it gives the estimate a filter fed in time order would (tests/test_control.py).
+
 After the currents went out, ``prepare(next reference window)`` lets the planner do the next
 tick's work that needs no measurement (the NMPC linearises around its prediction); ``step``
 then only finishes it, so the delay from measurement to currents is the feedback phase.
@@ -30,8 +39,10 @@ around them is this one class.
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -64,11 +75,28 @@ class ControlOutput:
     fault: str = ""  # a planner output the clamp had to repair (the safety layer stops on it)
 
 
+#: ticks a controller remembers for late measurements (1 s at the paper's 25.5 Hz)
+MEMORY = 26
+
+
 class Estimator(ABC):
     """Turns the (possibly missing) measurement and the last prediction into a pose."""
 
     @abstractmethod
     def reset(self, pose: FloatArray) -> None: ...
+
+    def snapshot(self) -> object:
+        """The estimator's state, for :meth:`restore` (a late measurement's re-run)."""
+        return copy.deepcopy(self.__dict__)
+
+    def restore(self, state: object) -> None:
+        """Go back to a :meth:`snapshot`."""
+        self.__dict__.update(copy.deepcopy(state))  # type: ignore[call-overload]
+
+    def fuse_more(self, measurement: FloatArray) -> FloatArray:
+        """Fuse a further measurement of the same tick, after :meth:`update` (a late one
+        that belongs here); the new pose. By default the latest measurement wins."""
+        return self.update(measurement, None)
 
     @abstractmethod
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
@@ -183,6 +211,63 @@ class Controller:
         self._predicted_state: FloatArray | None = None
         self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
+        self._memory: deque[_TickMemory] = deque(maxlen=MEMORY)
+        #: late measurements fused at their tick, and those older than the memory (dropped)
+        self.late_fused = 0
+        self.late_dropped = 0
+
+    def _state(self) -> tuple[object, ...]:
+        """What a tick starts from (the estimator's state and the last tick's outcome)."""
+        return (
+            self.estimator.snapshot(), self._previous_estimate, self._prediction,
+            self._predicted_state, self._predicted_velocity, self.currents,
+        )  # fmt: skip
+
+    def _restore(self, state: tuple[object, ...]) -> None:
+        self.estimator.restore(state[0])
+        (
+            self._previous_estimate, self._prediction, self._predicted_state,
+            self._predicted_velocity, self.currents,
+        ) = state[1:]  # type: ignore[assignment]  # fmt: skip
+
+    def _fuse_late(self, z: FloatArray, lag: int) -> None:
+        """Fuse ``z``, taken ``lag`` ticks ago, at that tick, and run the estimation forward
+        again to the start of this tick (module doc)."""
+        ticks = list(self._memory)[-lag:]
+        ticks[0].measurements.append(z)
+        self._restore(ticks[0].start)
+        for i, tick in enumerate(ticks):
+            if i > 0:
+                tick.start = self._state()
+            state = self._estimate_with(tick.measurements)
+            predicted = self.planner.predict(state, tick.currents)
+            self._advance(state[:3].copy(), predicted, tick.currents)
+        self.late_fused += 1
+
+    def _begin(self, measurement: ArrayLike | None, age: float) -> FloatArray:
+        """A tick's estimation: a late measurement is fused at its tick first (module
+        doc); returns the state the planner sees."""
+        z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
+        lag = round(age / self.dt) if z is not None and age > 0 else 0
+        if z is not None and lag > 0:
+            if lag <= len(self._memory):
+                self._fuse_late(z, lag)
+            else:
+                self.late_dropped += 1
+            z = None
+        self._memory.append(_TickMemory(self._state(), [] if z is None else [z]))
+        return self._estimate_with(self._memory[-1].measurements)
+
+    def _estimate_with(self, measurements: list[FloatArray]) -> FloatArray:
+        """The estimation half of a tick with these measurements (none, one, or a late one
+        beside the tick's own)."""
+        state = self._estimate(measurements[0] if measurements else None)
+        for z in measurements[1:]:
+            estimate = self.estimator.fuse_more(z)
+            if self.free_space is not None:
+                estimate = self._into_free_space(estimate, self.free_space, True)
+            state = np.concatenate([estimate, state[3:]])
+        return state
 
     def _into_free_space(self, estimate: FloatArray, fs: FreeSpace, measured: bool) -> FloatArray:
         """The estimate projected into the free space; at a measurement, also conditioned on
@@ -235,23 +320,27 @@ class Controller:
             self.planner.prepare(self._predicted_state, reference, self.currents)
 
     def replay_step(
-        self, measurement: ArrayLike | None, currents: ArrayLike
+        self, measurement: ArrayLike | None, currents: ArrayLike, age: float = 0.0
     ) -> tuple[FloatArray, FloatArray]:
         """One tick of estimation with the planner replaced by given ``currents`` (those a
         recording says were applied): the estimate, and the planner's model's prediction of
         the next tick's pose from it under those currents, which the next tick's estimator
         update uses as its prior. The estimator sees the consequences of its own estimates,
-        not of the recorded ones."""
-        state = self._estimate(measurement)
+        not of the recorded ones. ``age``: as for :meth:`step`."""
+        state = self._begin(measurement, age)
         applied = np.asarray(currents, dtype=np.float64)
+        self._memory[-1].currents = applied
         predicted = self.planner.predict(state, applied)
         estimate = state[:3].copy()
         self._advance(estimate, predicted, applied)
         return estimate, predicted[:3].copy()
 
-    def step(self, measurement: ArrayLike | None, reference: FloatArray) -> ControlOutput:
-        """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived."""
-        state = self._estimate(measurement)
+    def step(
+        self, measurement: ArrayLike | None, reference: FloatArray, age: float = 0.0
+    ) -> ControlOutput:
+        """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived;
+        ``age`` (s) how long before this tick the measurement's frame was taken (module doc)."""
+        state = self._begin(measurement, age)
         estimate = state[:3].copy()
         self.planner.observe_uncertainty(self.estimator.covariance)
         plan = self.planner.plan(state, reference, self.currents)
@@ -264,5 +353,16 @@ class Controller:
             np.isfinite(predicted)
         ):
             predicted = self.planner.predict(state, currents)
+        self._memory[-1].currents = currents
         self._advance(estimate, predicted, currents)
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
+
+
+@dataclass
+class _TickMemory:
+    """One remembered tick: the controller's state at its start, the measurements fused in
+    it (late ones added), and the currents applied after it."""
+
+    start: tuple[object, ...]
+    measurements: list[FloatArray]
+    currents: FloatArray = field(default_factory=lambda: np.zeros(0))

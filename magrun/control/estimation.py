@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
@@ -142,6 +143,14 @@ class KalmanPoseFilter(Estimator):
         """The pose estimate (x, y, θ), SI."""
         return np.asarray(self.kf.x[:3, 0], dtype=np.float64).copy()
 
+    def snapshot(self) -> object:
+        return self.kf.x.copy(), self.kf.P.copy()
+
+    def restore(self, state: object) -> None:
+        saved = cast(tuple[FloatArray, FloatArray], state)
+        self.kf.x = saved[0].copy()
+        self.kf.P = saved[1].copy()
+
     @property
     def heading_bias(self) -> float:
         """The estimated heading drift of the model, rad per tick (0 without the state)."""
@@ -205,6 +214,12 @@ class MeasurementOrPrediction(Estimator):
 
     def constrain(self, pose: FloatArray) -> None:
         self._last = np.asarray(pose, dtype=np.float64).copy()
+
+    def snapshot(self) -> object:
+        return self._last.copy()
+
+    def restore(self, state: object) -> None:
+        self._last = np.array(state, dtype=np.float64)
 
 
 class HoldLastMeasurement(MeasurementOrPrediction):

@@ -42,13 +42,22 @@ class Observation:
     in_contact : bool
         Whether the robot touched a wall since the previous observation (simulation only).
     frame : ndarray, shape (H, W, 3), uint8, or None
-        The camera frame (RGB) taken at ``t``, when the rig has a camera.
+        The camera frame (RGB), when the rig has a camera: taken at ``frame_time``.
+    camera_pose : ndarray, shape (3,), or None
+        What the camera pipeline reports, where it differs from ``pose`` (a simulated bench:
+        the pose at ``frame_time``, with the tracking errors where no frame is rendered; NaN:
+        a dropped frame). None: ``pose`` is what the camera reports.
+    frame_time : float or None
+        Rig time, s, at which the camera saw the robot (``t`` less the frame's age); None:
+        ``t``.
     """
 
     t: float
     pose: FloatArray
     in_contact: bool = False
     frame: NDArray[np.uint8] | None = None
+    camera_pose: FloatArray | None = None
+    frame_time: float | None = None
 
 
 class Rig(ABC):

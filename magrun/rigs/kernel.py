@@ -49,6 +49,7 @@ def free_substeps(
     cx: float,
     cy: float,
     slack: float,
+    trace: FloatArray,
 ) -> int:
     """Integrate sub-steps ``start``, ``start + 1``, … of ``h`` s in place on ``state``.
 
@@ -65,6 +66,9 @@ def free_substeps(
     cx, cy, slack : float
         The broad phase's clear disc: after a sub-step that ends ``≥ slack`` from ``(cx, cy)``
         the walls may be in reach.
+    trace : (n, 3) or (0, 3) float64
+        Where it has n rows, row k receives the pose after sub-step k (the camera's frame
+        age reads the past from it); with none, nothing is kept.
 
     Returns
     -------
@@ -119,6 +123,117 @@ def free_substeps(
         om1, dth = ur + (om - ur) * er, ur * h + (om - ur) * kr
         x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
         vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+        if trace.shape[0] > 0:
+            trace[k, 0], trace[k, 1], trace[k, 2] = x, y, th
+        k += 1
+        if math.hypot(x - cx, y - cy) >= slack:
+            break
+    state[0], state[1], state[2], state[3], state[4], state[5] = x, y, th, vx, vy, om
+    return k
+
+
+@njit(cache=True, nogil=True)
+def contact_substeps(
+    state: FloatArray,
+    drives: FloatArray,
+    start: int,
+    table: FloatArray,
+    x0: float,
+    y0: float,
+    step: float,
+    robot: FloatArray,
+    h: float,
+    cx: float,
+    cy: float,
+    slack: float,
+    trace: FloatArray,
+    contact: FloatArray,
+    flows: FloatArray,
+) -> int:
+    """:func:`free_substeps` with the plant's contact terms (:mod:`magrun.rigs.plant`): the
+    moment ``contact[0]`` rad off the body axis, floor friction (kinetic and static force
+    ``contact[1:3]`` N, torque ``contact[3:5]`` N m) and the fluid's velocity ``flows[k]``
+    (m/s) at sub-step k. The same steps as :func:`magrun.rigs.plant.contact_substep`, which
+    the tests compare it with."""
+    n, n_ch = drives.shape
+    i_max, j_max = table.shape[0] - 2, table.shape[1] - 2
+    moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
+    tau_a, tau_b, tau_r = robot[4] / d_a, robot[4] / d_b, robot[5] / d_r
+    alpha, fk, fs, tk, ts = contact[0], contact[1], contact[2], contact[3], contact[4]
+    h2 = h / 2
+    ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
+    ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
+    k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
+    x, y, th, vx, vy, om = state[0], state[1], state[2], state[3], state[4], state[5]
+    v = np.empty(24)
+    k = start
+    while k < n:
+        fx_, fy_ = (x - x0) / step, (y - y0) / step
+        i = min(max(math.floor(fx_), 0), i_max)
+        j = min(max(math.floor(fy_), 0), j_max)
+        for q in range(24):
+            a, b, f = (q // 12), (q // 6) % 2, q % 6
+            acc = 0.0
+            for c in range(n_ch):
+                acc += drives[k, c] * table[i + a, j + b, c, f]
+            v[q] = acc
+        tx, ty = fx_ - i, fy_ - j
+        sx, sy = 1 - tx, 1 - ty
+        bx = sx * (sy * v[0] + ty * v[6]) + tx * (sy * v[12] + ty * v[18])
+        by = sx * (sy * v[1] + ty * v[7]) + tx * (sy * v[13] + ty * v[19])
+        g00 = sx * (sy * v[2] + ty * v[8]) + tx * (sy * v[14] + ty * v[20])
+        g01 = sx * (sy * v[3] + ty * v[9]) + tx * (sy * v[15] + ty * v[21])
+        g10 = sx * (sy * v[4] + ty * v[10]) + tx * (sy * v[16] + ty * v[22])
+        g11 = sx * (sy * v[5] + ty * v[11]) + tx * (sy * v[17] + ty * v[23])
+        c_, s_ = math.cos(th), math.sin(th)
+        ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
+        mx, my = moment * math.cos(th + alpha), moment * math.sin(th + alpha)
+        tq = mx * by - my * bx
+        ur = tq / d_r
+        th_half = th + (ur * h2 + (om - ur) * k2r)
+        mx, my = moment * math.cos(th_half + alpha), moment * math.sin(th_half + alpha)
+        fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
+        fa, fb = c_ * fx + s_ * fy, -s_ * fx + c_ * fy
+        if flows.shape[0] > 0:
+            fa += d_a * (c_ * flows[k, 0] + s_ * flows[k, 1])
+            fb += d_b * (-s_ * flows[k, 0] + c_ * flows[k, 1])
+        # floor friction, translation
+        stuck = False
+        speed = math.hypot(ua, ub)
+        if speed > 0.0:
+            fa, fb = fa - fk * ua / speed, fb - fk * ub / speed
+        else:
+            fn = math.hypot(fa, fb)
+            if fn <= fs:
+                fa, fb = 0.0, 0.0
+                stuck = fs > 0.0 or fn == 0.0
+            else:
+                fa, fb = fa - fk * fa / fn, fb - fk * fb / fn
+        # and rotation
+        spun = False
+        if om != 0.0:
+            tq = tq - math.copysign(tk, om)
+        elif abs(tq) <= ts:
+            tq = 0.0
+            spun = ts > 0.0 or tq == 0.0
+        else:
+            tq = tq - math.copysign(tk, tq)
+        ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
+        ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * h + (ua - ua_ss) * ka
+        ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * h + (ub - ub_ss) * kb
+        om1, dth = ur + (om - ur) * er, ur * h + (om - ur) * kr
+        if stuck:
+            ua1, ub1, sa, sb = 0.0, 0.0, 0.0, 0.0
+        elif fk > 0 and (ua != 0.0 or ub != 0.0) and ua1 * ua + ub1 * ub <= 0.0:
+            ua1, ub1, sa, sb = 0.0, 0.0, 0.5 * h * ua, 0.5 * h * ub
+        if spun:
+            om1, dth = 0.0, 0.0
+        elif tk > 0 and om != 0.0 and om1 * om <= 0.0:
+            om1, dth = 0.0, 0.5 * h * om
+        x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
+        vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+        if trace.shape[0] > 0:
+            trace[k, 0], trace[k, 1], trace[k, 2] = x, y, th
         k += 1
         if math.hypot(x - cx, y - cy) >= slack:
             break

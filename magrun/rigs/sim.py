@@ -15,7 +15,11 @@ What the controllers do not know, and the plant does:
   :class:`Perturbation` around the nominal values (seeded: a trial is reproducible);
 - the amplifiers ramp each current toward its command at the slew limit instead of stepping;
 - walls stop the robot's body, a capsule (inelastic, frictionless contact that pushes and
-  turns it out as drag lets it: :meth:`magrun.scene.Walls.resolve_capsule`).
+  turns it out as drag lets it: :meth:`magrun.scene.Walls.resolve_capsule`);
+- and, where the protocol asks for a real bench's imperfections (``simulation.plant``),
+  :class:`~magrun.rigs.plant.Imperfections`: the camera's frame age, amplifier lag, coil
+  placement errors and an unmodelled residual field, the moment's misalignment, floor
+  friction, the fluid's flow and the tracking pipeline's errors (:mod:`magrun.rigs.plant`).
 
 With a ``camera``, an observation asked for a frame carries a rendered top-view frame of the
 true pose
@@ -33,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -43,6 +47,18 @@ from numpy.typing import ArrayLike, NDArray
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid, GridCells, HeldField
 from magrun.rigs.base import Observation, Rig
+from magrun.rigs.plant import (
+    IDEAL,
+    Imperfections,
+    OrnsteinUhlenbeck,
+    PoseHistory,
+    TrackingErrors,
+    amplifier_path,
+    contact_substep,
+    contact_vector,
+    draw_plant,
+    perturb_table,
+)
 from magrun.robot import MATH_OPS, RobotParams, discrete_step, load_robot
 from magrun.safety import clamp_currents
 from magrun.scene import Walls, capsule_disks
@@ -108,6 +124,11 @@ class SimRig(Rig):
     compiled : bool
         Integrate with the Numba kernel (:mod:`magrun.rigs.kernel`, 10–20× faster); False runs
         the Python reference (:func:`magrun.robot.discrete_step`), which the tests compare.
+    imperfections : Imperfections
+        A real bench's imperfections (:mod:`magrun.rigs.plant`); default: none.
+    flow_path : ndarray (n, 2), optional
+        A channel's centre line (m): the flow runs along it (its direction nearest the robot);
+        default: the flow is a 2-D vector.
     """
 
     def __init__(
@@ -122,6 +143,8 @@ class SimRig(Rig):
         camera: CameraConfig | None = None,
         compiled: bool = True,
         plant_seed: int | None = None,
+        imperfections: Imperfections = IDEAL,
+        flow_path: FloatArray | None = None,
     ) -> None:
         if grid.channel_names != coils.channel_names:
             raise ValueError("the field grid was built for other channels than the coil system")
@@ -135,6 +158,30 @@ class SimRig(Rig):
         self.nominal_robot = robot
         plant_rng = np.random.default_rng(seed if plant_seed is None else plant_seed)
         self.robot, self.coil_gains = perturbation.draw(robot, coils.n_channels, plant_rng)
+        # the imperfections' plant draws follow (so the draws above are as without them)
+        imp = self.imperfections = imperfections
+        limits = np.broadcast_to(np.asarray(coils.max_current, float), (coils.n_channels,))
+        self.plant_draw = draw_plant(
+            imp, coils.n_channels, limits, coils.workspace_half_width, plant_rng
+        )
+        if imp.field_error:
+            pivots = np.array(
+                [c.rotation @ (0.0, coils.coil_types[c.coil_type].center)
+                 if c.coil_type in coils.coil_types else (0.0, 0.0) for c in coils.channels]
+            )  # fmt: skip
+            table = perturb_table(
+                grid.table, grid.x0, grid.y0, grid.step, self.plant_draw, pivots,
+                coils.workspace_half_width,
+            )  # fmt: skip
+            self.grid = grid = replace(grid, table=table)
+            self._cells = GridCells(grid)
+        self._contact_params = contact_vector(imp, self.robot, self.plant_draw.misalignment)
+        self._flow_path = None if flow_path is None else np.asarray(flow_path, float)
+        # the trial's processes (frame age jitter, flow, tracking errors): streams of their own
+        streams = np.random.SeedSequence([seed, 37]).spawn(3)
+        self._stream_seeds = streams
+        self.tracking_errors = TrackingErrors(imp, streams[2]) if imp.tracking else None
+        self._history: PoseHistory | None = None
         self.fine_step = fine_step
         self.camera = Camera(camera) if camera is not None else None
         self.seed = seed
@@ -149,6 +196,10 @@ class SimRig(Rig):
             self._kernel, self._resolve = free_substeps, resolve_capsule
             self._disks = capsule_disks(self._half_axis, self._contact_radius)
             self._robot_vector = np.array([getattr(self.robot, f) for f in ROBOT_FIELDS])
+            if imperfections.contact:
+                from magrun.rigs.kernel import contact_substeps
+
+                self._contact_kernel = contact_substeps
         self.reset([0.0, 0.0, 0.0])
 
     @classmethod
@@ -161,15 +212,18 @@ class SimRig(Rig):
         camera: CameraConfig | None = None,
         coils: CoilSystem | None = None,
         plant_seed: int | None = None,
+        imperfections: Imperfections = IDEAL,
+        flow_path: FloatArray | None = None,
     ) -> SimRig:
         """The paper's rig with the shipped reference maps, or the system ``coils`` with its
-        folder's maps (``robot``: a robot of robots.yaml or its parameters; ``plant_seed``:
-        see the class)."""
+        folder's maps (``robot``: a robot of robots.yaml or its parameters; ``plant_seed``,
+        ``imperfections``, ``flow_path``: see the class)."""
         coils = coils or CoilSystem.load()
         params = load_robot(robot) if isinstance(robot, str) else robot
         return cls(
             coils, ChannelGrid.load(coils), params, walls, perturbation, seed,
-            camera=camera, plant_seed=plant_seed,
+            camera=camera, plant_seed=plant_seed, imperfections=imperfections,
+            flow_path=flow_path,
         )  # fmt: skip
 
     def reset(self, pose: ArrayLike) -> None:
@@ -188,11 +242,43 @@ class SimRig(Rig):
         )  # fmt: skip
         if self.camera is not None:  # the same frames (lighting, noise) on every reset
             self._renderer = Renderer(self.camera, self.robot, self.walls, seed=self.seed)
+        # the processes start again from the trial's seed
+        imp, streams = self.imperfections, self._stream_seeds
+        self._jitter_rng = np.random.default_rng(streams[0])
+        self._flow = (
+            OrnsteinUhlenbeck(
+                imp.flow_sigma, imp.flow_time, 1 if self._flow_path is not None else 2,
+                np.random.default_rng(streams[1]),
+            )
+            if imp.flow_sigma > 0 else None
+        )  # fmt: skip
+        if self.tracking_errors is not None:
+            self.tracking_errors.reset()
+        if imp.delayed:
+            self._history = PoseHistory(imp.frame_age + 6 * imp.frame_age_jitter + 0.1)
+            self._history.reset(0.0, self.state)
 
     def observe(self, frame: bool = True) -> Observation:
         pose = self.state[:3].copy()
-        image = self._renderer.render(pose) if frame and self._renderer is not None else None
-        obs = Observation(t=self.t, pose=pose, in_contact=self._contact, frame=image)
+        seen, taken = pose, self.t
+        if self._history is not None:  # the camera sees the robot as it was
+            imp = self.imperfections
+            age = imp.frame_age + imp.frame_age_jitter * float(self._jitter_rng.normal())
+            taken = self.t - max(age, 0.0)
+            seen = self._history.at(taken)
+        image = self._renderer.render(seen) if frame and self._renderer is not None else None
+        camera_pose = None
+        if self._history is not None or (self.tracking_errors and self.camera is None):
+            # without a camera the pipeline's errors act on the pose; with one, on what the
+            # tracker finds in the frame (magrun.rigs.plant.ImperfectTracker)
+            camera_pose = seen.copy()
+            if self.tracking_errors is not None and self.camera is None:
+                reported = self.tracking_errors(camera_pose)
+                camera_pose = np.full(3, np.nan) if reported is None else reported
+        obs = Observation(
+            t=self.t, pose=pose, in_contact=self._contact, frame=image,
+            camera_pose=camera_pose, frame_time=taken,
+        )  # fmt: skip
         self._contact = False
         return obs
 
@@ -210,10 +296,36 @@ class SimRig(Rig):
         n = max(1, round(duration / self.fine_step))
         h = duration / n
         ramp = self._ramp(n, h)  # the driven currents after each ramping sub-step
+        flows = self._flows(n, h)
+        trace = np.empty((n if self._history is not None else 0, 3))
         if self.compiled:
-            self._advance_compiled(n, h, ramp)
-            self.t += duration
-            return
+            self._advance_compiled(n, h, ramp, flows, trace)
+        else:
+            self._advance_python(n, h, ramp, flows, trace)
+        if self._history is not None:
+            self._history.extend(self.t + h * np.arange(1, n + 1), trace)
+        self.t += duration
+
+    def _flows(self, n: int, h: float) -> FloatArray:
+        """The fluid's velocity (m/s) at each of the next ``n`` sub-steps, (n, 2); (0, 2)
+        without flow."""
+        if self._flow is None:
+            return np.empty((0, 2))
+        v = self._flow.sample(n, h)
+        if self._flow_path is None:
+            return v
+        path = self._flow_path  # along the channel: its direction nearest the robot
+        d = np.hypot(*(path - self.state[:2]).T)
+        i = int(np.argmin(d))
+        a, b = path[max(i - 1, 0)], path[min(i + 1, len(path) - 1)]
+        tangent = (b - a) / max(float(np.hypot(*(b - a))), 1e-12)
+        return v[:, :1] * tangent[None, :]
+
+    def _advance_python(
+        self, n: int, h: float, ramp: FloatArray, flows: FloatArray, trace: FloatArray
+    ) -> None:
+        """:meth:`advance`'s sub-steps in Python (the reference)."""
+        imp = self.imperfections
         state = tuple(self.state)
         field: Callable[[float, float], tuple[list[float], Any]]
         for k in range(n):
@@ -225,12 +337,19 @@ class SimRig(Rig):
                 if self._held is None:  # the target's field, kept until apply() changes it
                     self._held = self._cells.held(self.grid.inputs(self.target * self.coil_gains))
                 field = self._held
-            state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
+            if imp.contact:
+                flow = (float(flows[k, 0]), float(flows[k, 1])) if len(flows) else (0.0, 0.0)
+                state = contact_substep(state, field, self.robot, h, self._contact_params, flow)
+            else:
+                state = discrete_step(state, field, self.robot, h, substeps=1, ops=MATH_OPS)
             state = self._contact_step(state)
+            if len(trace):
+                trace[k] = state[:3]
         self.state = np.array(state, dtype=np.float64)
-        self.t += duration
 
-    def _advance_compiled(self, n: int, h: float, ramp: FloatArray) -> None:
+    def _advance_compiled(
+        self, n: int, h: float, ramp: FloatArray, flows: FloatArray, trace: FloatArray
+    ) -> None:
         """:meth:`advance`'s sub-steps in the Numba kernel, the contacts resolved here."""
         m = len(ramp)
         drives = np.empty((n, self.coils.n_channels))  # each sub-step's effective currents
@@ -243,14 +362,23 @@ class SimRig(Rig):
         drives = g.inputs(drives)  # and the background's column, if the system has one
         state = self.state.copy()
         k = 0
+        contact = self.imperfections.contact
         while k < n:
             cx, cy, slack = self._clear[:3]
-            k = self._kernel(
-                state, drives, k, g.table, g.x0, g.y0, g.step, self._robot_vector, h,
-                cx, cy, slack,
-            )  # fmt: skip
+            if contact:
+                k = self._contact_kernel(
+                    state, drives, k, g.table, g.x0, g.y0, g.step, self._robot_vector, h,
+                    cx, cy, slack, trace, self._contact_params, flows,
+                )  # fmt: skip
+            else:
+                k = self._kernel(
+                    state, drives, k, g.table, g.x0, g.y0, g.step, self._robot_vector, h,
+                    cx, cy, slack, trace,
+                )  # fmt: skip
             if math.hypot(state[0] - cx, state[1] - cy) >= slack:
                 state[:] = self._contact_step(tuple(state.tolist()))
+                if len(trace):
+                    trace[k - 1] = state[:3]
         self.state = state
 
     def _contact_step(self, state: tuple[float, ...]) -> tuple[float, ...]:
@@ -280,6 +408,15 @@ class SimRig(Rig):
         delta = self.target - self.driven
         if not np.any(delta):
             return np.empty((0, delta.size))
+        tau = self.imperfections.amplifier_tau
+        if tau > 0:  # a first-order lag, rate-limited (magrun.rigs.plant.amplifier_path)
+            path = amplifier_path(self.driven, self.target, tau, self.max_slew_rate, h, n)
+            close = np.all(np.abs(path - self.target) <= 1e-12, axis=1)
+            if np.any(close):  # settled to rounding: hold the target from there
+                first = int(np.argmax(close))
+                path[first] = self.target
+                return path[: first + 1]
+            return path
         reach = np.arange(1, n + 1)[:, None] * (self.max_slew_rate * h)  # (n, 1)
         done = np.abs(delta) <= reach  # (n, ch): reached by then (exactly the target)
         path = np.where(done, self.target, self.driven + np.sign(delta) * reach)
