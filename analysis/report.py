@@ -336,12 +336,22 @@ def report_markdown(
                     "",
                 ]
             elif len(w):
-                show = w[[*_varying(w), "reference", "method", "n_ref", "n_other", "t", "p_holm",
-                          "stars"]]  # fmt: skip
+                show = w[[*_varying(w), "reference", "method", "n_ref", "n_other", "t", "d",
+                          "p_holm", "stars", "p_mw", "effect_rb"]]  # fmt: skip
                 lines += [
-                    "Per-trial RMS position error, Welch's t-test (Holm):",
+                    "Per-trial RMS position error (one value per trial): Welch's t-test "
+                    "(Holm) with Cohen's d, and Mann–Whitney U with its rank-biserial effect:",
                     "",
-                    _md_table(show, {"p_holm": ".2e", "t": "+.2f"}),
+                    _md_table(
+                        show,
+                        {
+                            "p_holm": ".2e",
+                            "t": "+.2f",
+                            "d": "+.2f",
+                            "p_mw": ".2e",
+                            "effect_rb": "+.2f",
+                        },
+                    ),
                 ]
     bad = data.trials[data.trials["status"] != "ok"]
     lines += ["## Trials not completed (failed, unreadable or pending)", ""]

@@ -116,10 +116,23 @@ def _mann_whitney(a: np.ndarray, b: np.ndarray) -> dict[str, float] | None:
 
 
 def _welch(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    """Welch's t-test (``t``, ``p``), its effect size Cohen's d on the average variance
+    (``d`` = (mean_b − mean_a) / √((s_a² + s_b²)/2): > 0 when the reference's values are
+    smaller), and the Mann–Whitney U of the same per-trial values (``p_mw``, exact for
+    small samples without ties, and ``effect_rb``)."""
+    nan = math.nan
+    out = {"t": nan, "p": nan, "d": nan, "p_mw": nan, "effect_rb": nan}
     if a.size < 2 or b.size < 2:
-        return {"t": math.nan, "p": math.nan}
+        return out
     res = sps.ttest_ind(a, b, equal_var=False)
-    return {"t": float(res.statistic), "p": float(res.pvalue)}
+    spread = math.sqrt((float(np.var(a, ddof=1)) + float(np.var(b, ddof=1))) / 2)
+    mw = sps.mannwhitneyu(a, b, alternative="two-sided", method="auto")
+    out.update(
+        t=float(res.statistic), p=float(res.pvalue),
+        d=(float(np.mean(b)) - float(np.mean(a))) / spread if spread > 0 else nan,
+        p_mw=float(mw.pvalue), effect_rb=rank_biserial(float(mw.statistic), a.size, b.size),
+    )  # fmt: skip
+    return out
 
 
 def compare_methods(
@@ -149,11 +162,17 @@ def trial_tests(
     reference: str | None = "proposed",
     by: Sequence[str] = ("protocol", *CONDITIONS),
 ) -> pd.DataFrame:
-    """Welch's t-test of per-trial ``value`` between ``reference`` and each other method.
+    """Welch's t-test of per-trial ``value`` between ``reference`` and each other method,
+    with Cohen's ``d`` and the Mann–Whitney U of the same values (``p_mw``, ``effect_rb``):
+    one value per trial, the unit of replication.
 
-    Holm-corrected within each condition. NaN where a method has fewer than two trials.
+    Holm-corrected (Welch's p) within each condition. NaN where a method has fewer than two
+    trials.
     """
-    cols = [*by, "reference", "method", "value", "n_ref", "n_other", "t", "p", "p_holm", "stars"]
+    cols = [
+        *by, "reference", "method", "value", "n_ref", "n_other", "t", "p", "d", "p_mw",
+        "effect_rb", "p_holm", "stars",
+    ]  # fmt: skip
     return _against_reference(trials, value, reference, by, _welch, cols)
 
 

@@ -195,6 +195,7 @@ def run_trial(
     nan3 = np.full(3, np.nan)
     prediction: FloatArray | None = None
     offsets = np.arange(horizon + 1) * dt
+    lead = float(getattr(controller, "latency", 0.0))  # the controller plans across it
     measured = latency == "measured"
     declared = 0.0 if measured else float(latency)
     k, t = 0, 0.0
@@ -214,7 +215,9 @@ def run_trial(
         else:
             camera_pose = tracker(obs.frame)
         z = feedback(obs.t, camera_pose) if take else None
-        window = reference.pose(obs.t + offsets)
+        # the plan starts when its currents apply, the controller's latency from now
+        window = reference.pose(obs.t + lead + offsets) if lead else reference.pose(obs.t + offsets)
+        desired = reference.pose(obs.t) if lead else window[0]
         # a frame's age (its time stamp): the controller fuses it where it was taken
         age = obs.t - obs.frame_time if z is not None and obs.frame_time is not None else 0.0
         out = controller.step(z, window, age)
@@ -227,7 +230,7 @@ def run_trial(
         applied = rig.apply(safety.limit(out.currents, out.fault, obs.t))
         tick = Tick(
             k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
-            measured=z, estimated=out.estimate, predicted=prediction, desired=window[0],
+            measured=z, estimated=out.estimate, predicted=prediction, desired=desired,
             currents=applied, status=out.status, compute_time=c, frame=obs.frame,
             latency=rig.last_latency, safety_stop=safety.reason,
         )  # fmt: skip
@@ -235,7 +238,7 @@ def run_trial(
             ("t", np.array([obs.t])),
             ("actual", obs.pose),
             ("tracked", nan3 if camera_pose is None else camera_pose),
-            ("desired", window[0]),
+            ("desired", desired),
             ("measured", nan3 if z is None else z),
             ("estimated", out.estimate),
             ("predicted", nan3 if prediction is None else prediction),
@@ -249,7 +252,7 @@ def run_trial(
             on_tick(tick)
         prediction = out.predicted
         # the next tick's work that needs no measurement, while the plant runs on
-        controller.prepare(reference.pose(obs.t + period + offsets))
+        controller.prepare(reference.pose(obs.t + period + lead + offsets))
         rest = period - charged
         if rest > 0:
             rig.advance(rest)

@@ -240,6 +240,15 @@ class ControllerSettings(_Strict):
             "overran the control period are counted."
         ),
     )
+    plan_across_latency: bool = Field(
+        False,
+        description=(
+            "Plan from the state predicted for when the tick's currents reach the coils, "
+            "latency_ms after its observation (the previous currents act meanwhile), for a "
+            "reference window that starts then. Off by default: on the simulated plants it "
+            "did not reduce the tracking error (docs: Control)."
+        ),
+    )
     charge_compute_time: bool | None = Field(
         None,
         description=(

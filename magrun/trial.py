@@ -215,8 +215,11 @@ def control_config(
         measured[1] if measured and k.process_sigma_deg == "robot"
         else math.radians(float(k.process_sigma_deg))
     )  # fmt: skip
+    latency = settings.latency
     return ControlConfig(
         dt=1.0 / settings.rate_hz,
+        # the declared compute latency, planned across where asked ("measured": unknown)
+        latency=latency if settings.plan_across_latency and isinstance(latency, float) else 0.0,
         nmpc=NMPCConfig(horizon=settings.horizon),
         linear_mpc=LinearMPCConfig(horizon=settings.horizon),
         kalman=KalmanConfig(

@@ -260,3 +260,24 @@ def test_a_trial_that_failed_midway_keeps_its_metrics_but_not_its_samples(tmp_pa
     assert (row["status"], row["error"]) == ("failed", "boom")
     assert row["rms_position_mm"] == pytest.approx(5.0)
     assert set(data.samples["trial"]) == {0}
+
+
+def test_coil_effort_by_hand() -> None:
+    """Two coils, samples 0.1 s apart (each value holds until the next; the last for the
+    median step): RMS per coil, ∫ΣI² dt, total variation and time within 0.5 % of the limit."""
+    import pandas as pd
+
+    from analysis.metrics import coil_effort
+
+    frame = pd.DataFrame({"t": [0.0, 0.1, 0.2, 0.3], "a": [0.0, 10.0, 10.0, -10.0],
+                          "b": [1.0, 1.0, 29.9, 30.0]})  # fmt: skip
+    out = coil_effort(frame, 30.0)
+    assert out["rms_current_a[a]"] == pytest.approx(np.sqrt(300 / 4))
+    assert out["rms_current_a[b]"] == pytest.approx(np.sqrt((1 + 1 + 29.9**2 + 900) / 4))
+    heat = 0.1 * ((0 + 1) + (100 + 1) + (100 + 29.9**2) + (100 + 900))
+    assert out["current_squared_integral_a2s"] == pytest.approx(heat)
+    assert out["current_variation_a"] == pytest.approx(10 + 0 + 20 + 0 + 28.9 + 0.1)
+    assert out["time_at_limit_s"] == pytest.approx(0.2)  # 29.9 and 30 A: ≥ 29.85
+    per_coil = coil_effort(frame, [5.0, 100.0])  # limits per coil: a is at its limit 3 samples
+    assert per_coil["time_at_limit_s"] == pytest.approx(0.3)
+    assert np.isnan(coil_effort(frame, None)["time_at_limit_s"])  # no limits recorded

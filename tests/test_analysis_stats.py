@@ -102,6 +102,13 @@ def test_welch_matches_scipy_and_needs_two_trials() -> None:
     assert out.loc["b1", "p_holm"] == pytest.approx(ref.pvalue, rel=1e-12)  # family of one
     assert math.isnan(out.loc["b2", "p"])
     assert out.loc["b2", "stars"] == ""
+    # effect sizes: Cohen's d by hand; Mann–Whitney exact on 3 vs 3 with no ties: every
+    # reference value below every other gives U = 0, p = 2/C(6,3) = 0.1, r = +1
+    a, b = np.array([1.0, 1.2, 0.9]), np.array([2.0, 2.5, 1.7])
+    d = (b.mean() - a.mean()) / math.sqrt((a.var(ddof=1) + b.var(ddof=1)) / 2)
+    assert out.loc["b1", "d"] == pytest.approx(d, rel=1e-12)
+    assert out.loc["b1", "p_mw"] == pytest.approx(0.1, rel=1e-12)
+    assert out.loc["b1", "effect_rb"] == pytest.approx(1.0)
 
 
 def test_summary_is_mean_and_sample_std_across_trials() -> None:

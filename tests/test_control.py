@@ -232,3 +232,30 @@ def test_a_measurement_older_than_the_memory_is_dropped() -> None:
     assert c.late_dropped == 1
     assert c.late_fused == 0
     assert np.linalg.norm(after - before) < 1e-4  # the 10 mm measurement was not fused
+
+
+class _LinearPlanner(_DriftPlanner):
+    """An exact model of a plant whose pose moves at a velocity proportional to the currents
+    (an instant drag response): one period of ``currents`` moves it by k I Δt."""
+
+    def predict(self, state, currents) -> np.ndarray:  # noqa: ANN001
+        v = np.asarray(currents[:3], dtype=np.float64) * 1e-3
+        return np.concatenate([np.asarray(state[:3]) + v * 0.04, v])
+
+
+def test_planning_across_the_latency_predicts_the_delayed_plant_exactly() -> None:
+    """Currents that apply L = 15 ms after each observation, the previous ones acting until
+    then: for the linear plant, x' = x + k (I_prev L + I (Δt − L)); the controller's
+    prediction (through the interpolation of its module doc) is exact there (1e-15 m)."""
+    dt, lat = 0.04, 0.015
+    c = Controller("t", _estimator("measurement"), _LinearPlanner(), dt, 30.0, 1e4, 3,
+                   latency=lat)  # fmt: skip
+    c.reset(np.zeros(3))
+    rng = np.random.default_rng(1)
+    pose, previous = np.zeros(3), np.zeros(3)
+    for _ in range(10):
+        currents = rng.normal(0.0, 5.0, 3)
+        _, predicted = c.replay_step(pose, currents)
+        truth = pose + 1e-3 * (previous * lat + currents * (dt - lat))
+        assert_allclose(predicted, truth, rtol=0, atol=1e-15)
+        pose, previous = truth, currents

@@ -26,6 +26,14 @@ the estimation and the model's prediction forward again with the currents applie
 this tick. With every measurement on time this is the usual tick; with every measurement
 late it gives the estimate a filter fed in time order would (tests/test_control.py).
 
+The new currents reach the coils some time after the tick's observation (``latency``: the
+tick's compute). Meanwhile the previous currents act, so with ``latency`` > 0 the planner
+plans from the state predicted for then (the model's one-tick prediction under the previous
+currents, interpolated to the fraction ``latency/Δt`` of the period; drag-dominated motion is
+near uniform within a period), for a reference window that starts then (the loop shifts it),
+and the prediction handed to the next tick is taken back from ``Δt + latency`` to ``Δt``
+the same way.
+
 After the currents went out, ``prepare(next reference window)`` lets the planner do the next
 tick's work that needs no measurement (the NMPC linearises around its prediction); ``step``
 then only finishes it, so the delay from measurement to currents is the feedback phase.
@@ -40,6 +48,7 @@ around them is this one class.
 from __future__ import annotations
 
 import copy
+import math
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
@@ -174,6 +183,9 @@ class Controller:
         Where the robot's body can be: every estimate is projected into it.
     velocity : {"difference", "model"}
         The velocity handed to the planner (module doc).
+    latency : float
+        Expected time, s, from a tick's observation to its currents reaching the coils; the
+        planner plans across it (module doc). 0: the currents apply at once.
     """
 
     def __init__(
@@ -187,9 +199,13 @@ class Controller:
         n_channels: int,
         free_space: FreeSpace | None = None,
         velocity: str = "difference",
+        latency: float = 0.0,
     ) -> None:
         if velocity not in ("difference", "model"):
             raise ValueError(f"velocity must be 'difference' or 'model', not {velocity!r}")
+        if not (math.isfinite(latency) and latency >= 0):
+            raise ValueError(f"latency must be finite and >= 0, got {latency!r}")
+        self.latency = float(latency)
         self.name = name
         self.estimator = estimator
         self.planner = planner
@@ -230,6 +246,35 @@ class Controller:
             self._predicted_velocity, self.currents,
         ) = state[1:]  # type: ignore[assignment]  # fmt: skip
 
+    def _ahead(self, state: FloatArray) -> FloatArray:
+        """The state when this tick's currents apply, ``latency`` after ``state`` (the
+        previous currents act meanwhile; module doc); ``state`` itself without latency."""
+        if self.latency <= 0:
+            return state
+        f = min(self.latency / self.dt, 1.0)
+        p = self.planner.predict(state, self.currents)
+        out = state.copy()
+        out[:3] = state[:3] + f * (p[:3] - state[:3])
+        if p.size >= 6:
+            out[3:6] = p[3:6]
+        return out
+
+    def _back(self, start: FloatArray, predicted: FloatArray) -> FloatArray:
+        """A plan's prediction from ``start`` (``Δt`` after the currents applied) taken
+        back to the next tick's observation time, ``latency`` earlier."""
+        if self.latency <= 0:
+            return predicted
+        f = min(self.latency / self.dt, 1.0)
+        out = predicted.copy()
+        out[:3] = start[:3] + (1.0 - f) * (predicted[:3] - start[:3])
+        return out
+
+    def _next(self, state: FloatArray, currents: FloatArray) -> FloatArray:
+        """The model's prediction of the next tick's state from this tick's ``state``
+        with ``currents`` applied after the latency."""
+        start = self._ahead(state)
+        return self._back(start, self.planner.predict(start, currents))
+
     def _fuse_late(self, z: FloatArray, lag: int) -> None:
         """Fuse ``z``, taken ``lag`` ticks ago, at that tick, and run the estimation forward
         again to the start of this tick (module doc)."""
@@ -240,7 +285,7 @@ class Controller:
             if i > 0:
                 tick.start = self._state()
             state = self._estimate_with(tick.measurements)
-            predicted = self.planner.predict(state, tick.currents)
+            predicted = self._next(state, tick.currents)
             self._advance(state[:3].copy(), predicted, tick.currents)
         self.late_fused += 1
 
@@ -317,7 +362,10 @@ class Controller:
         prediction of this tick's plan: call it after the currents went out, before the next
         measurement. ``reference``: the next tick's window."""
         if self._predicted_state is not None:
-            self.planner.prepare(self._predicted_state, reference, self.currents)
+            state = self._predicted_state
+            if self.latency > 0:  # the next plan starts when its currents apply
+                state = self._ahead(state)
+            self.planner.prepare(state, reference, self.currents)
 
     def replay_step(
         self, measurement: ArrayLike | None, currents: ArrayLike, age: float = 0.0
@@ -330,7 +378,7 @@ class Controller:
         state = self._begin(measurement, age)
         applied = np.asarray(currents, dtype=np.float64)
         self._memory[-1].currents = applied
-        predicted = self.planner.predict(state, applied)
+        predicted = self._next(state, applied)
         estimate = state[:3].copy()
         self._advance(estimate, predicted, applied)
         return estimate, predicted[:3].copy()
@@ -342,8 +390,9 @@ class Controller:
         ``age`` (s) how long before this tick the measurement's frame was taken (module doc)."""
         state = self._begin(measurement, age)
         estimate = state[:3].copy()
+        start = self._ahead(state)  # where the robot is when these currents apply
         self.planner.observe_uncertainty(self.estimator.covariance)
-        plan = self.planner.plan(state, reference, self.currents)
+        plan = self.planner.plan(start, reference, self.currents)
         fault = ""
         if not np.all(np.isfinite(plan.currents)):
             fault = f"the {self.name} planner returned non-finite currents"
@@ -352,7 +401,8 @@ class Controller:
         if not np.allclose(currents, plan.currents, atol=1e-6, rtol=0) or not np.all(
             np.isfinite(predicted)
         ):
-            predicted = self.planner.predict(state, currents)
+            predicted = self.planner.predict(start, currents)
+        predicted = self._back(start, predicted)
         self._memory[-1].currents = currents
         self._advance(estimate, predicted, currents)
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)

@@ -48,6 +48,9 @@ class ControlConfig:
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
     pid: PIDConfig = field(default_factory=PIDConfig)
     linear_mpc: LinearMPCConfig = field(default_factory=LinearMPCConfig)
+    #: expected time, s, from a tick's observation to its currents reaching the coils: the
+    #: controller plans across it (:class:`~magrun.control.base.Controller`)
+    latency: float = 0.0
 
 
 @cache
@@ -110,4 +113,5 @@ def make_controller(
         method, estimator, planner, cfg.dt, coils.max_current, coils.max_slew_rate,
         coils.n_channels, free_space,
         velocity="model" if isinstance(estimator, KalmanPoseFilter) else "difference",
+        latency=cfg.latency,
     )  # fmt: skip
