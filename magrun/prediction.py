@@ -169,7 +169,7 @@ def rollout(
             B, G = field(np.column_stack(state[:2]), held)
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
             for _ in range(m):
-                state = _substep(state, B, G, robot, duration / m)
+                state = substep_each(state, B, G, robot, duration / m)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings
@@ -218,7 +218,9 @@ def prediction_errors(
     )  # fmt: skip
 
 
-def _substep(state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray) -> tuple[Any, ...]:
+def substep_each(
+    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray
+) -> tuple[Any, ...]:
     """One sub-step of length ``h`` (an array: each start's own) for every start at once."""
     if np.all(h == h.flat[0]):
         h0 = float(h.flat[0])

@@ -120,6 +120,7 @@ _RECORDED_FILES = {
     "workspace.phantom": "phantom",
     "robots_file": "robots file",
     "controller.coil_gains": "coil calibration",
+    "simulation.plant": "plant file",
 }
 
 

@@ -238,7 +238,7 @@ class _LinearPlanner(_DriftPlanner):
     """An exact model of a plant whose pose moves at a velocity proportional to the currents
     (an instant drag response): one period of ``currents`` moves it by k I Δt."""
 
-    def predict(self, state, currents) -> np.ndarray:  # noqa: ANN001
+    def predict(self, state, currents) -> np.ndarray:
         v = np.asarray(currents[:3], dtype=np.float64) * 1e-3
         return np.concatenate([np.asarray(state[:3]) + v * 0.04, v])
 

@@ -40,6 +40,11 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
     help="Also write the coils' gains as a calibration file (YAML) for a protocol's "
     "controller.coil_gains.",
 )  # fmt: skip
+@click.option(
+    "--plant", "plant_out", type=click.Path(dir_okay=False, path_type=Path),
+    help="Also estimate the bench's frame age, tracker noise and amplifier lag and write "
+    "them as a plant file (YAML) for a protocol's simulation.plant.",
+)  # fmt: skip
 @click.option("--name", help="The identified robot's name  [default: ROBOT_identified].")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON object.")
 def identify_cmd(
@@ -49,6 +54,7 @@ def identify_cmd(
     model: str,
     horizon: int,
     gains_out: Path | None,
+    plant_out: Path | None,
     name: str | None,
     as_json: bool,
 ) -> None:
@@ -60,11 +66,17 @@ def identify_cmd(
     robot with the fitted moment); a protocol uses it with `robots_file: OUT` and
     `robot: NAME`. The coil gains are printed and in the file's header; --gains writes them
     as a calibration file, which a protocol uses with `controller.coil_gains: FILE`.
+
+    --plant also estimates the bench's timing and tracking from the same recordings: the
+    frame age (the measured poses against the actual ones, shifted in time), the tracker's
+    noise and outliers, and the amplifiers' lag (the lag whose driven currents predict the
+    robot best), and writes them as a plant file: `simulation.plant: FILE` simulates that
+    bench.
     """
     import yaml
 
     from magrun.calibration import gains_file_text
-    from magrun.identify import identify, robot_entry
+    from magrun.identify import LAG_GRID, bench_timing, identify, robot_entry
     from magrun.recorded import RecordingReadError
     from magrun.replay import ReplayError
 
@@ -74,6 +86,13 @@ def identify_cmd(
         raise InputError(f"--gains {gains_out}: the calibration file must be .yaml")
     if gains_out is not None and gains_out.resolve() == out.resolve():
         raise InputError(f"--gains {gains_out}: the same file as --out")
+    if plant_out is not None and plant_out.suffix.lower() not in (".yaml", ".yml"):
+        raise InputError(f"--plant {plant_out}: the plant file must be .yaml")
+    if plant_out is not None and plant_out.resolve() in {
+        out.resolve(),
+        gains_out.resolve() if gains_out else None,
+    }:
+        raise InputError(f"--plant {plant_out}: the same file as --out or --gains")
     if name is not None and not _NAME.fullmatch(name):
         raise InputError(f"--name {name!r}: a letter, then letters, digits or '_'")
     shared = set(recordings) & set(test)
@@ -85,7 +104,19 @@ def identify_cmd(
             click.echo(f"fitting: {evaluations} evaluations of the predictions", err=True)
 
     try:
-        result = identify(list(recordings), list(test), model, horizon, progress)
+        timing = None
+        if plant_out is not None:  # first: the fit then predicts with the lag
+            click.echo("estimating the bench's timing and tracking", err=True)
+            timing = bench_timing(
+                list(recordings), model,
+                progress=lambda n: click.echo(
+                    f"amplifier lag: {n}/{len(LAG_GRID)} tried", err=True
+                ),
+            )  # fmt: skip
+        result = identify(
+            list(recordings), list(test), model, horizon, progress,
+            amplifier_tau=timing.amplifier_tau if timing is not None else None,
+        )  # fmt: skip
     except (ReplayError, RecordingReadError) as exc:
         raise InputError(str(exc)) from exc
     robot_name = name or f"{result.robot}_identified"
@@ -117,8 +148,25 @@ def identify_cmd(
                 ],
             )
         )
+    plant_terms = timing.plant_terms() if timing is not None else None
+    if plant_out is not None and timing is not None and plant_terms is not None:
+        lines = [
+            f"# a bench identified by magrun identify from {timing.frames} measurements in "
+            f"{len(recordings)} recording(s): {', '.join(p.name for p in recordings)}",
+            "# frame age: the measured poses against the actual ones; tracker noise: what is "
+            "left beyond the condition's noise; amplifier lag: RMS one-tick prediction error (mm)",
+            "# per lag tried: "
+            + ", ".join(f"{k * 1e3:g} ms {v:.4f}" for k, v in timing.lag_scan.items()),
+            "# friction, flow and the field's errors are not identified here: add them by hand",
+        ]
+        body = {"description": f"identified from {len(recordings)} recording(s)", **plant_terms}
+        plant_out.parent.mkdir(parents=True, exist_ok=True)
+        plant_out.write_text("\n".join(lines) + "\n" + yaml.safe_dump(body, sort_keys=False))
     if as_json:
-        extra = {"out": str(out), "name": robot_name, "gains": gains_out and str(gains_out)}
+        extra = {
+            "out": str(out), "name": robot_name, "gains": gains_out and str(gains_out),
+            "plant": plant_terms, "plant_file": plant_out and str(plant_out),
+        }  # fmt: skip
         click.echo(json.dumps({**result.summary(), **extra}))
         return
     for line in header:
@@ -126,3 +174,9 @@ def identify_cmd(
     click.echo(f"wrote {out} (robot {robot_name})")
     if gains_out is not None:
         click.echo(f"wrote {gains_out} (coil gains)")
+    if plant_out is not None and plant_terms is not None:
+        click.echo(
+            "bench: "
+            + ", ".join(f"{k} {v:g}" for k, v in plant_terms.items())
+            + f"\nwrote {plant_out} (plant file)"
+        )
