@@ -259,3 +259,19 @@ def test_planning_across_the_latency_predicts_the_delayed_plant_exactly() -> Non
         truth = pose + 1e-3 * (previous * lat + currents * (dt - lat))
         assert_allclose(predicted, truth, rtol=0, atol=1e-15)
         pose, previous = truth, currents
+
+
+def test_a_latency_aware_loop_records_the_reference_of_the_observation_time(
+    coils, channel_grid, magnet_robot
+) -> None:
+    """With the controller planning across 15 ms of latency the loop hands it a window that
+    starts 15 ms later, but records (and scores) the desired pose of each observation's own
+    time; without latency the window starts at the observation."""
+    reference = s_trajectory()
+    for lead in (0.0, 0.015):
+        config = ControlConfig(dt=1 / 25.5, latency=lead)
+        c = make_controller("baseline3", magnet_robot, config)
+        rig = SimRig(coils, channel_grid, magnet_robot, seed=2)
+        log = run_trial(c, rig, reference, duration=1.0, latency=0.015)
+        assert_allclose(log.desired, reference.pose(log.t), rtol=0, atol=1e-15)
+        assert c.latency == lead
