@@ -42,6 +42,7 @@ from magrun.prediction import (
     field_function,
     rollout,
     segments_of,
+    start_states,
     substep_each,
 )
 from magrun.recorded import read_ticks
@@ -321,11 +322,8 @@ def rollout_driven(
     """:func:`magrun.prediction.rollout` with each tick's driven currents sub-step by
     sub-step (:func:`driven_currents`): the field is read every ``part`` sub-steps at the
     mean current of those sub-steps."""
-    actual, starts = seg.actual, seg.starts
-    d = actual[starts] - actual[starts - 1]
-    d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    v = d / seg.length[starts - 1][:, None]
-    state: tuple[Any, ...] = (*actual[starts].T, *v.T)
+    starts = seg.starts
+    state = start_states(seg)
     positions = np.empty((seg.horizon, len(starts), 2))
     headings = np.empty((seg.horizon, len(starts)))
     for j in range(seg.horizon):

@@ -148,18 +148,25 @@ def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
     return Segments(actual, rec.currents, lag, length, dt, starts, horizon)
 
 
+def start_states(seg: Segments) -> tuple[Any, ...]:
+    """Each start's state (x, y, θ, vx, vy, ω) as arrays over the starts: its actual pose,
+    and the velocity of the tick before it (the pose difference over that tick)."""
+    actual, starts = seg.actual, seg.starts
+    d = actual[starts] - actual[starts - 1]
+    d[:, 2] = _wrap(d[:, 2])
+    v = d / seg.length[starts - 1][:, None]
+    return (*actual[starts].T, *v.T)
+
+
 def rollout(
     seg: Segments, robot: Any, field: Any, gains: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray]:
     """Open-loop predictions from every start: positions (K, n, 2) and headings (K, n) after
     1 … K ticks. ``gains`` scale each channel's field per ampere (default 1)."""
-    actual, currents, lag, starts = seg.actual, seg.currents, seg.lag, seg.starts
+    currents, lag, starts = seg.currents, seg.lag, seg.starts
     if gains is not None:
         currents = currents * gains  # a coil's gain scales its field per ampere
-    d = actual[starts] - actual[starts - 1]
-    d[:, 2] = _wrap(d[:, 2])
-    v = d / seg.length[starts - 1][:, None]
-    state: tuple[Any, ...] = (*actual[starts].T, *v.T)
+    state = start_states(seg)
     positions = np.empty((seg.horizon, len(starts), 2))
     headings = np.empty((seg.horizon, len(starts)))
     for j in range(seg.horizon):

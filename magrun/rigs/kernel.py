@@ -35,6 +35,49 @@ FloatArray = NDArray[np.float64]
 ROBOT_FIELDS = ("moment", "drag_parallel", "drag_perpendicular", "drag_rotation", "mass", "inertia")
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _decays(robot: FloatArray, h: float) -> tuple[float, ...]:
+    """The exponential integrator's constants over a sub-step of ``h`` for the robot vector
+    (:data:`ROBOT_FIELDS`): h/2, the velocity decays and their integrals."""
+    d_a, d_b, d_r = robot[1], robot[2], robot[3]
+    tau_a, tau_b, tau_r = robot[4] / d_a, robot[4] / d_b, robot[5] / d_r
+    h2 = h / 2
+    ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
+    ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
+    k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
+    return h2, ea, eb, er, ka, kb, kr, k2r
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _field_at(
+    x: float, y: float, drives: FloatArray, k: int, table: FloatArray, x0: float, y0: float,
+    step: float, v: FloatArray,
+) -> tuple[float, float, float, float, float, float]:  # fmt: skip
+    """The field (Bx, By) and gradient (g00, g01, g10, g11) at (x, y) for sub-step k's
+    currents: the grid cell's corners (00, 01, 10, 11) contracted with the currents, then
+    read bilinearly (``v``: a scratch array of 24)."""
+    n_ch = drives.shape[1]
+    i_max, j_max = table.shape[0] - 2, table.shape[1] - 2
+    fx_, fy_ = (x - x0) / step, (y - y0) / step
+    i = min(max(math.floor(fx_), 0), i_max)
+    j = min(max(math.floor(fy_), 0), j_max)
+    for q in range(24):
+        a, b, f = (q // 12), (q // 6) % 2, q % 6
+        acc = 0.0
+        for c in range(n_ch):
+            acc += drives[k, c] * table[i + a, j + b, c, f]
+        v[q] = acc
+    tx, ty = fx_ - i, fy_ - j
+    sx, sy = 1 - tx, 1 - ty
+    bx = sx * (sy * v[0] + ty * v[6]) + tx * (sy * v[12] + ty * v[18])
+    by = sx * (sy * v[1] + ty * v[7]) + tx * (sy * v[13] + ty * v[19])
+    g00 = sx * (sy * v[2] + ty * v[8]) + tx * (sy * v[14] + ty * v[20])
+    g01 = sx * (sy * v[3] + ty * v[9]) + tx * (sy * v[15] + ty * v[21])
+    g10 = sx * (sy * v[4] + ty * v[10]) + tx * (sy * v[16] + ty * v[22])
+    g11 = sx * (sy * v[5] + ty * v[11]) + tx * (sy * v[17] + ty * v[23])
+    return bx, by, g00, g01, g10, g11
+
+
 @njit(cache=True, nogil=True)
 def free_substeps(
     state: FloatArray,
@@ -76,36 +119,14 @@ def free_substeps(
         The number of sub-steps done so far (``n`` when all are; less when the last one left
         the clear disc and the caller must resolve contacts before resuming there).
     """
-    n, n_ch = drives.shape
-    i_max, j_max = table.shape[0] - 2, table.shape[1] - 2
+    n = drives.shape[0]
     moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
-    tau_a, tau_b, tau_r = robot[4] / d_a, robot[4] / d_b, robot[5] / d_r
-    h2 = h / 2
-    ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
-    ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
-    k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
+    h2, ea, eb, er, ka, kb, kr, k2r = _decays(robot, h)
     x, y, th, vx, vy, om = state[0], state[1], state[2], state[3], state[4], state[5]
     v = np.empty(24)
     k = start
     while k < n:
-        fx_, fy_ = (x - x0) / step, (y - y0) / step
-        i = min(max(math.floor(fx_), 0), i_max)
-        j = min(max(math.floor(fy_), 0), j_max)
-        # the cell's corners (00, 01, 10, 11) contracted with this sub-step's currents
-        for q in range(24):
-            a, b, f = (q // 12), (q // 6) % 2, q % 6
-            acc = 0.0
-            for c in range(n_ch):
-                acc += drives[k, c] * table[i + a, j + b, c, f]
-            v[q] = acc
-        tx, ty = fx_ - i, fy_ - j
-        sx, sy = 1 - tx, 1 - ty
-        bx = sx * (sy * v[0] + ty * v[6]) + tx * (sy * v[12] + ty * v[18])
-        by = sx * (sy * v[1] + ty * v[7]) + tx * (sy * v[13] + ty * v[19])
-        g00 = sx * (sy * v[2] + ty * v[8]) + tx * (sy * v[14] + ty * v[20])
-        g01 = sx * (sy * v[3] + ty * v[9]) + tx * (sy * v[15] + ty * v[21])
-        g10 = sx * (sy * v[4] + ty * v[10]) + tx * (sy * v[16] + ty * v[22])
-        g11 = sx * (sy * v[5] + ty * v[11]) + tx * (sy * v[17] + ty * v[23])
+        bx, by, g00, g01, g10, g11 = _field_at(x, y, drives, k, table, x0, y0, step, v)
         c_, s_ = math.cos(th), math.sin(th)
         ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
         # the start wrench, a half step to the mid-step orientation
@@ -155,36 +176,15 @@ def contact_substeps(
     ``contact[1:3]`` N, torque ``contact[3:5]`` N m) and the fluid's velocity ``flows[k]``
     (m/s) at sub-step k. The same steps as :func:`magrun.rigs.plant.contact_substep`, which
     the tests compare it with."""
-    n, n_ch = drives.shape
-    i_max, j_max = table.shape[0] - 2, table.shape[1] - 2
+    n = drives.shape[0]
     moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
-    tau_a, tau_b, tau_r = robot[4] / d_a, robot[4] / d_b, robot[5] / d_r
+    h2, ea, eb, er, ka, kb, kr, k2r = _decays(robot, h)
     alpha, fk, fs, tk, ts = contact[0], contact[1], contact[2], contact[3], contact[4]
-    h2 = h / 2
-    ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
-    ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
-    k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
     x, y, th, vx, vy, om = state[0], state[1], state[2], state[3], state[4], state[5]
     v = np.empty(24)
     k = start
     while k < n:
-        fx_, fy_ = (x - x0) / step, (y - y0) / step
-        i = min(max(math.floor(fx_), 0), i_max)
-        j = min(max(math.floor(fy_), 0), j_max)
-        for q in range(24):
-            a, b, f = (q // 12), (q // 6) % 2, q % 6
-            acc = 0.0
-            for c in range(n_ch):
-                acc += drives[k, c] * table[i + a, j + b, c, f]
-            v[q] = acc
-        tx, ty = fx_ - i, fy_ - j
-        sx, sy = 1 - tx, 1 - ty
-        bx = sx * (sy * v[0] + ty * v[6]) + tx * (sy * v[12] + ty * v[18])
-        by = sx * (sy * v[1] + ty * v[7]) + tx * (sy * v[13] + ty * v[19])
-        g00 = sx * (sy * v[2] + ty * v[8]) + tx * (sy * v[14] + ty * v[20])
-        g01 = sx * (sy * v[3] + ty * v[9]) + tx * (sy * v[15] + ty * v[21])
-        g10 = sx * (sy * v[4] + ty * v[10]) + tx * (sy * v[16] + ty * v[22])
-        g11 = sx * (sy * v[5] + ty * v[11]) + tx * (sy * v[17] + ty * v[23])
+        bx, by, g00, g01, g10, g11 = _field_at(x, y, drives, k, table, x0, y0, step, v)
         c_, s_ = math.cos(th), math.sin(th)
         ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
         mx, my = moment * math.cos(th + alpha), moment * math.sin(th + alpha)
