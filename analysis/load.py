@@ -36,7 +36,7 @@ CONDITIONS = ("tracking_rate_hz", "noise_sigma_mm", "noise_sigma_deg")
 #: columns that identify a trial
 KEYS = ("protocol", "method", *CONDITIONS, "trial")
 #: ``trial`` metadata values that are text (the rest are JSON)
-_TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary"}
+_TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary", "plant"}
 #: what a damaged file's error adds (a recorder killed mid-trial leaves a file without index)
 RECOVER_HINT = (
     "the file is truncated or damaged (a recorder that died leaves it unindexed); "
@@ -403,7 +403,10 @@ def load(
             row.update(status="unreadable", error=exc.reason)
             rows.append(row)
             continue
-        row.update(identity(rec), quick=bool(rec.trial.get("quick", False)))
+        row.update(
+            identity(rec), quick=bool(rec.trial.get("quick", False)),
+            plant=str(rec.trial.get("plant", "") or ""),
+        )  # fmt: skip
         row.setdefault("status", "ok")
         row.setdefault("error", "")
         s = samples_of(rec)

@@ -289,6 +289,17 @@ def report_markdown(
         + ", ".join(f"{n} {status}" for status, n in data.trials["status"].value_counts().items())
         + ".",
     ]
+    if "plant" in data.trials:  # simulated trials say which plant they ran on
+        plants = data.trials["plant"].fillna("").astype(str)
+        counts = plants[plants != ""].value_counts()
+        if len(counts):
+            lines += [
+                "",
+                "Simulated plant (`simulation.plant`): "
+                + ", ".join(f"{name} ({n} trials)" for name, n in counts.items())
+                + ("" if len(counts) == 1 else ": compare trials of one plant only")
+                + ".",
+            ]
     if "quick" in data.trials and data.trials["quick"].eq(True).any():
         lines += [
             "",

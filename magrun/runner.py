@@ -124,6 +124,8 @@ def execute_trial(
         meta = {
             **trial.describe(),
             "rig": str(rig),
+            # the simulated plant: a preset's name or a plant file's (its terms: `plant` record)
+            "plant": Path(protocol.simulation.plant).name if sim else "",
             "robot": protocol.robot,
             "robot_length_m": robot.length,
             "robot_diameter_m": robot.diameter,

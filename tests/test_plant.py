@@ -443,6 +443,13 @@ def test_a_bench_trial_records_its_plant_and_the_measured_prediction(tmp_path: P
     draw = json.loads(meta["plant"]["draw"])
     assert set(draw["coil_offsets_mm"]) == set(rec.currents.columns) - {"t", "t_ns"}
     assert rec.trial["max_current_a"] == [30.0] * 8
+    # the results table and the report say which plant the trials ran on
+    import analysis
+    from analysis.report import report_markdown
+
+    data = analysis.load(tmp_path / "out")
+    assert data.trials["plant"].tolist() == ["bench"]
+    assert "Simulated plant (`simulation.plant`): bench (1 trials)." in report_markdown(data)
 
 
 def test_a_bench_trial_is_the_same_every_time(tmp_path: Path) -> None:
