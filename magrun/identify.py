@@ -236,15 +236,16 @@ AGE_GRID = np.arange(0.0, 0.5, 5e-4)
 LAG_GRID = (0.0, 0.0025, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08)
 
 
-def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray]:
+def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatArray]:
     """The time shift between the measured poses and the actual ones: the age a that
     minimises Σ |measured(tₖ) − actual(tₖ − a)|² over every measurement (the actual poses
     interpolated linearly between ticks; residuals beyond 5 × their median left out, as
     outliers), refined by a parabola through the best grid point and its neighbours.
-    Returns the age (s), the number of measurements, and their residuals (m, 3) at it."""
+    Returns the age (s), the number of measurements, their residuals (m, 3) at it, and each
+    measurement's own fluoroscopy noise σ (m,), m, from its recording's condition."""
 
-    def residuals(a: float) -> FloatArray:
-        parts = []
+    def residuals(a: float) -> tuple[FloatArray, FloatArray]:
+        parts, sigmas = [], []
         for rec in recordings:
             t = rec.t
             z = rec.poses["measured"]
@@ -256,10 +257,14 @@ def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray]:
             r = z[ok] - at
             r[:, 2] = (r[:, 2] + np.pi) % (2 * np.pi) - np.pi
             parts.append(r)
-        return np.concatenate(parts) if parts else np.empty((0, 3))
+            noise = float(rec.trial.get("noise_sigma_mm", 0.0) or 0.0) * 1e-3
+            sigmas.append(np.full(len(r), noise))
+        if not parts:
+            return np.empty((0, 3)), np.empty(0)
+        return np.concatenate(parts), np.concatenate(sigmas)
 
     def cost(a: float) -> float:
-        r = residuals(a)
+        r, _ = residuals(a)
         d2 = np.sum(r[:, :2] ** 2, axis=1)
         if d2.size == 0:
             return math.inf
@@ -274,10 +279,10 @@ def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray]:
         den = c0 - 2 * c1 + c2
         if den > 0:
             best += 0.5 * (c0 - c2) / den * (AGE_GRID[1] - AGE_GRID[0])
-    r = residuals(best)
+    r, sigma = residuals(best)
     if len(r) == 0:
         raise ReplayError("no measured poses with an actual pose to compare: no frame age")
-    return max(best, 0.0), len(r), r
+    return max(best, 0.0), len(r), r, sigma
 
 
 def driven_currents(
@@ -368,14 +373,10 @@ def bench_timing(
     recs = [read_ticks(p) for p in paths]
     if not recs:
         raise ReplayError("identify needs at least one recording")
-    age, frames, r = frame_age(recs)
-    sigma_cond = np.concatenate(
-        [np.full(int(np.sum(np.isfinite(rec.poses["measured"][:, 0]))),
-                 float(rec.trial.get("noise_sigma_mm", 0.0) or 0.0) * 1e-3) for rec in recs]
-    )  # fmt: skip
+    age, frames, r, sigma_cond = frame_age(recs)
     d2 = np.sum(r[:, :2] ** 2, axis=1)
     keep = d2 <= 25 * np.median(d2)
-    cond2 = float(np.mean(sigma_cond[: len(d2)][keep] ** 2)) if len(sigma_cond) >= len(d2) else 0.0
+    cond2 = float(np.mean(sigma_cond[keep] ** 2))
     per_axis = float(np.sqrt(max(np.mean(d2[keep]) / 2 - cond2, 0.0)))
     # the heading's outliers (a tracker that flips the robot end for end) left out alike
     th = np.abs(r[:, 2])

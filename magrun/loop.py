@@ -195,7 +195,7 @@ def run_trial(
     nan3 = np.full(3, np.nan)
     prediction: FloatArray | None = None
     offsets = np.arange(horizon + 1) * dt
-    lead = float(getattr(controller, "latency", 0.0))  # the controller plans across it
+    lead = controller.latency  # the controller plans across it (0: none)
     measured = latency == "measured"
     declared = 0.0 if measured else float(latency)
     k, t = 0, 0.0
