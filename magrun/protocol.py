@@ -249,6 +249,19 @@ class ControllerSettings(_Strict):
             "did not reduce the tracking error (docs: Control)."
         ),
     )
+    field_error_percent: Annotated[float, Field(ge=0, le=100)] = Field(
+        0.0,
+        description=(
+            "The NMPC's trust in the coils' field model: each channel's field is taken as "
+            "known to this percentage (1 sigma), and the field along the robot's moment is "
+            "kept large enough that the field the model cannot vouch for turns the robot by "
+            "at most field_heading_error_deg. 0: the model is trusted exactly (docs: Control)."
+        ),
+    )
+    field_heading_error_deg: Annotated[float, Field(gt=0, lt=90)] = Field(
+        20.0,
+        description="The heading error, deg, that field_error_percent may cause (see there).",
+    )
     charge_compute_time: bool | None = Field(
         None,
         description=(

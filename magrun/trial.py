@@ -220,7 +220,11 @@ def control_config(
         dt=1.0 / settings.rate_hz,
         # the declared compute latency, planned across where asked ("measured": unknown)
         latency=latency if settings.plan_across_latency and isinstance(latency, float) else 0.0,
-        nmpc=NMPCConfig(horizon=settings.horizon),
+        nmpc=NMPCConfig(
+            horizon=settings.horizon,
+            field_error=settings.field_error_percent / 100,
+            field_heading_error=math.radians(settings.field_heading_error_deg),
+        ),
         linear_mpc=LinearMPCConfig(horizon=settings.horizon),
         kalman=KalmanConfig(
             measurement_position=sigma_mm * 1e-3,

@@ -26,6 +26,28 @@ the heading is held while the robot flips. Every plan therefore keeps B_∥ ≥ 
 ``min_aligned_field`` (robots.yaml, where its derivation is written): at B_min a heading
 error decays by a factor e within one frame period of the slowest fluoroscopy rate (3 Hz).
 
+Field-model error
+-----------------
+B_min alone assumes the model's field is the coils' field. It is not quite: a coil a
+millimetre from where the calibration put it, or a gain a few per cent off, makes each
+channel's field wrong by a few per cent of itself, and the NMPC often holds the heading with
+a small net field from large currents whose fields largely cancel (20–30 A per coil for
+1–3 mT on the paper rig's spine delivery). The error then does not cancel: on the bench
+preset (1 mm, 1° per coil, 2 % gains) the field the model predicts and the coils' differ by
+7 % of the channels' fields in quadrature (median), which turned the field at the capsule by
+20–90° where the aligned field was 1.2 mT. With ``field_error`` = ε > 0 (each channel's
+field known to a fraction ε, independently) the field the model cannot vouch for has a
+standard deviation of about ε s(I), with ``s(I)² = Σ_i (β_i I_i)²`` and β_i the channel's
+field per ampere (RMS over the workspace, :func:`channel_field_scale`). It turns the robot
+by about atan(ε s / B_∥), so the heading term asks for::
+
+    B_∥ ≥ √(B_min² + (ε s(I) / tan δ)²)          δ = ``field_heading_error``
+
+B_min where the currents are small, and where they are large a field along the moment that
+dwarfs what the model does not know: the planner then prefers smaller currents, or a larger
+aligned field, to a force bought with cancelling fields. With ε = 0 (the default) the term
+is the plain B_∥ ≥ B_min.
+
 Corridor
 --------
 With a :class:`~magrun.freespace.FreeSpace` that has a critical boundary (the protocol's
@@ -88,6 +110,7 @@ controller's safety clamp then bounds the change.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -140,6 +163,11 @@ class NMPCConfig:
     # heading-stable fields: field along the moment ≥ B_min (T; None: the robot's own)
     min_aligned_field: float | None = None
     heading_weight: float = 100.0  # per mT² below B_min; 0 switches the term off
+    # the coils' field-model error (module doc, "Field-model error"): each channel's field
+    # is trusted to this fraction (1 σ, relative; 0: exactly) and the field along the moment
+    # is kept ≥ field_error · s(I) / tan(field_heading_error), s the channels' fields' norm
+    field_error: float = 0.0
+    field_heading_error: float = math.radians(20.0)  # rad
     # corridor (with a FreeSpace): the body's ends clear of the boundaries
     # per mm² of violation, critical boundary (the others get none: contact with them is
     # allowed, and resting on the far wall keeps the body off the critical one)
@@ -202,6 +230,9 @@ class NMPC(Planner):
             robot.min_aligned_field if cfg.min_aligned_field is None else cfg.min_aligned_field
         )
         self.free_space = free_space
+        #: each channel's field per ampere, RMS over the workspace, T/A (the field-model
+        #: error's scale; module doc, "Field-model error")
+        self.channel_field_scale = channel_field_scale(field_model)
         #: the estimate's position covariance (2×2, m²), for the corridor's chance margin
         self.position_covariance: FloatArray | None = None
         self.problem = OCP(self)
@@ -342,9 +373,18 @@ class OCP:
         }
         along = (ca.cos(X[2]) * B[0] + ca.sin(X[2]) * B[1]) * 1e3  # mT
         b_min = nmpc.min_aligned_field * 1e3
+        required: Any = b_min
+        if cfg.field_error > 0:
+            # the field the model cannot vouch for: each channel's |b_i| I_i (mT) times the
+            # error, in quadrature; the aligned field must dwarf it (module doc)
+            limits = np.broadcast_to(np.asarray(nmpc.max_current, float), (nu,))
+            per_channel = ca.DM(nmpc.channel_field_scale * 1e3 * limits)  # mT at u = 1
+            spread = ca.sumsqr(u * per_channel)
+            ratio = cfg.field_error / math.tan(cfg.field_heading_error)
+            required = ca.sqrt(b_min**2 + ratio**2 * spread)
         # the weighted gaps √w g (≥ 0 where satisfied); the residuals are min(0, ·) of them
         self.heading_gap = ca.Function(
-            "heading_gap", [X, u], [np.sqrt(cfg.heading_weight) * (along - b_min)]
+            "heading_gap", [X, u], [np.sqrt(cfg.heading_weight) * (along - required)]
         )
         self.heading_residual = ca.Function(
             "heading_residual", [X, u], [ca.fmin(0, self.heading_gap(X, u))]
@@ -989,6 +1029,15 @@ class RTISolver(_Backend):
     def states_plan(self) -> FloatArray | None:
         S = self._plan_states()
         return None if S is None else S[:, :NX].copy()
+
+
+def channel_field_scale(model: PlanarFieldModel, n: int = 21) -> FloatArray:
+    """Each channel's field per ampere, RMS over an n × n grid of the workspace box, T/A."""
+    h = model.coils.workspace_half_width
+    g = np.linspace(-h, h, n)
+    grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    unit = model.unit_field(grid)  # (n², channels, 2)
+    return np.sqrt(np.mean(np.sum(unit**2, axis=-1), axis=0))
 
 
 def _scale(limit: Any) -> Any:
