@@ -219,6 +219,8 @@ class BenchTiming:
     outlier_rate: float  # fraction of measurements further than 5 σ
     amplifier_tau: float  # s, the amplifiers' first-order lag
     lag_scan: dict[float, float] = field(default_factory=dict)  # τ (s) -> RMS error (mm)
+    friction: float = 0.0  # m/s, the floor's kinetic friction as a drag speed
+    moving_ticks: int = 0  # ticks the friction estimate rests on
 
     def plant_terms(self) -> dict[str, float]:
         """The plant file's settings (unit-suffixed, as ``simulation.plant: FILE`` reads)."""
@@ -228,6 +230,7 @@ class BenchTiming:
             "tracker_sigma_mm": round(self.tracker_position * 1e3, 4),
             "tracker_sigma_deg": round(math.degrees(self.tracker_heading), 3),
             "outlier_rate": round(self.outlier_rate, 4),
+            "friction_mm_s": round(max(self.friction, 0.0) * 1e3, 3),
         }
 
 
@@ -411,7 +414,52 @@ def bench_timing(
         a, b, _ = np.polyfit(x, y, 2)
         if a > 0:
             tau = float(np.clip(-b / (2 * a), x[0], x[2]))
+    friction, moving = floor_friction(recs, segs, robot, fld, g, coils.max_slew_rate, tau)
     return BenchTiming(
         frame_age=age, frames=frames, tracker_position=per_axis, tracker_heading=heading,
-        outlier_rate=outliers, amplifier_tau=tau, lag_scan=scan,
+        outlier_rate=outliers, amplifier_tau=tau, lag_scan=scan, friction=friction,
+        moving_ticks=moving,
     )  # fmt: skip
+
+
+#: ticks slower than this (predicted, m/s) tell nothing of the kinetic friction
+MOVING = 0.5e-3
+
+
+def floor_friction(
+    recs: Sequence[Any], segs: Sequence[Segments], robot: Any, fld: Any,
+    gains: FloatArray | None, slew: Any, tau: float,
+) -> tuple[float, int]:  # fmt: skip
+    """The floor's kinetic friction f (m/s, as the drag speed it equals; the plant's
+    ``friction_mm_s``) from the one-tick predictions without friction: on a moving
+    drag-dominated body friction takes f d∥ against the velocity, which slows it by
+    f (ûa² + ûb² d∥/d⊥) along its direction of motion û (body axes a, b). So each moving
+    tick's shortfall along û, −r·û/Δt with r the actual end less the predicted one, is
+    f times that factor: least squares over every tick predicted to move faster than
+    :data:`MOVING`. Flow and the tracker's noise average out; a force factor off by k
+    adds (k − 1) times the speed, so fit the robot on recordings where friction matters
+    little, or take this as an upper bound. Returns f and the ticks it rests on."""
+    num = den = 0.0
+    count = 0
+    for rec, seg in zip(recs, segs, strict=True):
+        driven = driven_currents(rec.currents, seg.length, seg.lag, slew, tau)
+        positions, _ = rollout_driven(seg, driven, robot, fld, gains)
+        act = rec.poses["actual"]
+        start, end = act[seg.starts], act[seg.starts + 1]
+        dt = seg.length[seg.starts]
+        step = positions[0] - start[:, :2]
+        speed = np.hypot(step[:, 0], step[:, 1]) / dt
+        finite = np.all(np.isfinite(end), axis=1) & np.all(np.isfinite(start), axis=1)
+        ok = (speed > MOVING) & finite
+        if not np.any(ok):
+            continue
+        u = step[ok] / (speed[ok] * dt[ok])[:, None]
+        th = start[ok, 2]
+        ua = np.cos(th) * u[:, 0] + np.sin(th) * u[:, 1]
+        ub = -np.sin(th) * u[:, 0] + np.cos(th) * u[:, 1]
+        factor = ua**2 + ub**2 * robot.drag_parallel / robot.drag_perpendicular
+        shortfall = -np.sum((end[ok, :2] - positions[0][ok]) * u, axis=1) / dt[ok]
+        num += float(np.sum(shortfall * factor))
+        den += float(np.sum(factor**2))
+        count += int(np.count_nonzero(ok))
+    return (num / den if den > 0 else 0.0), count

@@ -430,6 +430,16 @@ class PlantTerms(_Strict):
     rotational_stiction_deg_s: float | None = _bounded(
         3600, "Static friction torque threshold, as a turning rate's drag, deg/s."
     )
+    wall_friction: float | None = _bounded(
+        2,
+        "Kinetic Coulomb friction coefficient where the body touches a wall (its slide along "
+        "the wall is slowed by this times the force pressing it in); dimensionless.",
+    )
+    wall_stiction: float | None = _bounded(
+        2,
+        "Static friction coefficient at the walls: the body sticks while the force along the "
+        "wall is at most this times the force pressing it in; dimensionless.",
+    )
     flow_sigma_mm_s: float | None = _bounded(
         100,
         "σ of the fluid's Ornstein–Uhlenbeck velocity, mm/s (along the channel in a phantom "
@@ -551,6 +561,8 @@ def imperfections_from_terms(t: dict[str, float]) -> Imperfections:
         stiction=t["stiction_mm_s"] * 1e-3,
         rotational_friction=deg(t["rotational_friction_deg_s"]),
         rotational_stiction=deg(t["rotational_stiction_deg_s"]),
+        wall_friction=t["wall_friction"],
+        wall_stiction=t["wall_stiction"],
         flow_sigma=t["flow_sigma_mm_s"] * 1e-3,
         flow_time=t["flow_time_s"],
         tracker_position=t["tracker_sigma_mm"] * 1e-3,

@@ -214,6 +214,7 @@ class Walls:
         translational_drag: float,
         rotational_drag: float,
         iterations: int = 16,
+        wall_friction: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> tuple[tuple[float, ...], bool]:
         """:meth:`resolve` for a capsule body, translating and turning it out of the walls.
 
@@ -230,6 +231,13 @@ class Walls:
         across a channel (the plant's 1 ms steps leave µm penetrations: a pass or two). A flat
         side resting on a wall is pushed at the middle of its equally deep disks (no turn).
         ``state`` is ``(x, y, θ, vx, vy, ω)``; returns the new state and whether it touched.
+
+        ``wall_friction`` = (μ_k, μ_s, h): Coulomb friction at the contact (0: frictionless),
+        for a plant stepped by h s. A drag-dominated body pressed into a wall by a force F_n
+        sinks δ = F_n h / c_t into it in a step, and its contact point moves s = v_t h along
+        it: the contact point's slide is cut by μ_k δ (kinetic), or to nothing where
+        |s| ≤ μ_s δ (it sticks), which is |F_t| reduced by μ_k F_n, or held while
+        |F_t| ≤ μ_s F_n (the same mobilities as the push; the tangential velocity with it).
         """
         x, y, th, vx, vy, om = state
         if self.segments.size == 0:
@@ -270,4 +278,44 @@ class Walls:
                 vx += n[0] * impulse / translational_drag
                 vy += n[1] * impulse / translational_drag
                 om += rxn * impulse / rotational_drag
+            if wall_friction[0] > 0 or wall_friction[1] > 0:
+                x, y, th, vx, vy, om = _wall_friction(
+                    (x, y, th, vx, vy, om), n, r, depth, translational_drag, rotational_drag,
+                    wall_friction,
+                )  # fmt: skip
         return (x, y, th, vx, vy, om), touched
+
+
+def _wall_friction(
+    state: tuple[float, ...],
+    n: FloatArray,
+    r: FloatArray,
+    depth: float,
+    translational_drag: float,
+    rotational_drag: float,
+    friction: tuple[float, float, float],
+) -> tuple[float, ...]:
+    """Coulomb friction at a wall contact (:meth:`Walls.resolve_capsule`): the contact point
+    at arm ``r`` slides v_t h along the wall (tangent t = n rotated by +90°); cut it by
+    μ_k ``depth``, or to nothing where it is at most μ_s ``depth``."""
+    x, y, th, vx, vy, om = state
+    mu_k, mu_s, h = friction
+    tx, ty = -float(n[1]), float(n[0])
+    rxt = float(r[0] * ty - r[1] * tx)
+    vt = vx * tx + vy * ty + om * rxt
+    slide = vt * h
+    if abs(slide) <= mu_s * depth:
+        cut = -slide
+    else:
+        cut = -math.copysign(min(mu_k * depth, abs(slide)), slide)
+    if cut == 0.0:
+        return state
+    wt = 1.0 / translational_drag + rxt * rxt / rotational_drag
+    x += tx * cut / (translational_drag * wt)
+    y += ty * cut / (translational_drag * wt)
+    th += rxt * cut / (rotational_drag * wt)
+    dv = cut / (h * wt)  # the same impulse on the velocities
+    vx += tx * dv / translational_drag
+    vy += ty * dv / translational_drag
+    om += rxt * dv / rotational_drag
+    return x, y, th, vx, vy, om

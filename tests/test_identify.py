@@ -152,7 +152,8 @@ seed: 3
 duration_s: 15
 feedback: {camera: false}
 controller: {rate_hz: 25.5, latency_ms: 5}
-simulation: {frame_age_ms: 30, amplifier_tau_ms: 15, tracker_sigma_mm: 0.2, tracker_sigma_deg: 2}
+simulation: {frame_age_ms: 30, amplifier_tau_ms: 15, tracker_sigma_mm: 0.2, tracker_sigma_deg: 2,
+             friction_mm_s: 1.0}
 """
 
 
@@ -190,6 +191,7 @@ def test_identify_recovers_the_bench_timing_and_writes_a_plant_file(
     assert terms["amplifier_tau_ms"] == pytest.approx(15, rel=0.25)
     assert terms["tracker_sigma_mm"] == pytest.approx(0.2, rel=0.1)
     assert terms["tracker_sigma_deg"] == pytest.approx(2.0, rel=0.1)
+    assert terms["friction_mm_s"] == pytest.approx(1.0, rel=0.25)
     protocol = tmp_path / "p.yaml"
     protocol.write_text(TIMED_BENCH.split("simulation:")[0] + "simulation: {plant: bench.yaml}\n")
     imp = load_protocol(protocol).simulation.imperfections()

@@ -164,23 +164,61 @@ def test_compiled_plant_follows_the_python_reference(
     y=st.floats(-0.006, 0.006),
     th=st.floats(-4.0, 4.0),
     v=st.tuples(*[st.floats(-0.05, 0.05)] * 3),
+    mu=st.sampled_from([(0.0, 0.0), (0.05, 0.1), (0.5, 0.5)]),
 )
 def test_compiled_capsule_contact_equals_the_reference(
-    x: float, y: float, th: float, v: tuple[float, float, float]
+    x: float, y: float, th: float, v: tuple[float, float, float], mu: tuple[float, float]
 ) -> None:
     """kernel.resolve_capsule against Walls.resolve_capsule (NumPy), a 3 mm body in a 8 mm
-    box with a wall across it: the same push and turn to 1e-12."""
+    box with a wall across it, frictionless and with wall friction: the same push and turn
+    to 1e-12."""
     from magrun.rigs.kernel import resolve_capsule
     from magrun.scene import capsule_disks
 
     walls = Walls.box(0.004) + Walls(np.array([[[-0.004, 0.001], [0.002, -0.003]]]))
     half_axis, radius, ct, cr = 1.2e-3, 0.3e-3, 2e-3, 3e-9
     state = (x, y, th, *v)
-    expected, touched = walls.resolve_capsule(state, half_axis, radius, ct, cr)
+    friction = (*mu, 1e-3)
+    expected, touched = walls.resolve_capsule(
+        state, half_axis, radius, ct, cr, wall_friction=friction
+    )
     out = np.array(state)
-    got = resolve_capsule(out, walls.segments, capsule_disks(half_axis, radius), radius, ct, cr, 16)
+    disks = capsule_disks(half_axis, radius)
+    got = resolve_capsule(out, walls.segments, disks, radius, ct, cr, 16, *friction)
     assert got == touched
     assert_allclose(out, expected, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("along", "mu_k", "mu_s", "speed"),
+    [
+        (0.3, 0.0, 0.0, 0.3),  # frictionless: F_t / c_t
+        (0.3, 0.1, 0.2, 0.2),  # sliding: (F_t - μ_k F_n) / c_t
+        (0.15, 0.1, 0.2, 0.0),  # F_t ≤ μ_s F_n: it sticks
+        (0.25, 0.1, 0.2, 0.15),  # above the static threshold it slides at the kinetic rate
+    ],
+)
+def test_wall_friction_is_coulombs(along: float, mu_k: float, mu_s: float, speed: float) -> None:
+    """A capsule lying on a straight wall, pressed into it by F_n and pushed along it by F_t
+    (a drag-dominated body: its velocity is F / c_t each 1 ms step), for 2 s: it slides at
+    (F_t − μ_k F_n) / c_t, or stays put while F_t ≤ μ_s F_n (Coulomb's law), to 1e-6 of
+    F_n / c_t, and stays on the wall without turning (forces as multiples of F_n, so the
+    expected speeds are multiples of F_n / c_t = 1 mm/s)."""
+    wall = Walls(np.array([[[-1.0, 0.0], [1.0, 0.0]]]))
+    half_axis, radius, ct, cr = 1.5e-3, 0.5e-3, 3e-2, 4e-7
+    press = 1e-3  # F_n / c_t, m/s
+    h, steps = 1e-3, 2000
+    state: tuple[float, ...] = (0.0, radius, 0.0, 0.0, 0.0, 0.0)
+    for _ in range(steps):
+        vx, vy = along * press, -press
+        x, y, th = state[0] + vx * h, state[1] + vy * h, state[2]
+        state, touched = wall.resolve_capsule(
+            (x, y, th, vx, vy, 0.0), half_axis, radius, ct, cr, wall_friction=(mu_k, mu_s, h)
+        )
+        assert touched
+    assert state[0] / (steps * h) == pytest.approx(speed * press, abs=1e-6 * press)
+    assert state[1] == pytest.approx(radius, abs=1e-12)
+    assert state[2] == pytest.approx(0.0, abs=1e-12)
 
 
 @pytest.fixture

@@ -42,7 +42,8 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 )  # fmt: skip
 @click.option(
     "--plant", "plant_out", type=click.Path(dir_okay=False, path_type=Path),
-    help="Also estimate the bench's frame age, tracker noise and amplifier lag and write "
+    help="Also estimate the bench's frame age, tracker noise, amplifier lag and floor "
+    "friction and write "
     "them as a plant file (YAML) for a protocol's simulation.plant.",
 )  # fmt: skip
 @click.option("--name", help="The identified robot's name  [default: ROBOT_identified].")
@@ -69,9 +70,10 @@ def identify_cmd(
 
     --plant also estimates the bench's timing and tracking from the same recordings: the
     frame age (the measured poses against the actual ones, shifted in time), the tracker's
-    noise and outliers, and the amplifiers' lag (the lag whose driven currents predict the
-    robot best), and writes them as a plant file: `simulation.plant: FILE` simulates that
-    bench.
+    noise and outliers, the amplifiers' lag (the lag whose driven currents predict the
+    robot best) and the floor's kinetic friction (how far short of those predictions the
+    robot falls along its motion), and writes them as a plant file: `simulation.plant: FILE`
+    simulates that bench.
     """
     import yaml
 
@@ -157,7 +159,9 @@ def identify_cmd(
             "left beyond the condition's noise; amplifier lag: RMS one-tick prediction error (mm)",
             "# per lag tried: "
             + ", ".join(f"{k * 1e3:g} ms {v:.4f}" for k, v in timing.lag_scan.items()),
-            "# friction, flow and the field's errors are not identified here: add them by hand",
+            f"# friction: the one-tick predictions' shortfall along the motion, over "
+            f"{timing.moving_ticks} moving ticks (a kinetic friction; stiction not identified)",
+            "# flow and the field's errors are not identified here: add them by hand",
         ]
         body = {"description": f"identified from {len(recordings)} recording(s)", **plant_terms}
         plant_out.parent.mkdir(parents=True, exist_ok=True)

@@ -250,6 +250,9 @@ def resolve_capsule(
     translational_drag: float,
     rotational_drag: float,
     iterations: int,
+    mu_k: float = 0.0,
+    mu_s: float = 0.0,
+    h: float = 0.0,
 ) -> bool:
     """:meth:`magrun.scene.Walls.resolve_capsule` compiled, on ``state`` (6,) in place.
 
@@ -311,5 +314,22 @@ def resolve_capsule(
             vx += nx * impulse / translational_drag
             vy += ny * impulse / translational_drag
             om += rxn * impulse / rotational_drag
+        if mu_k > 0 or mu_s > 0:  # Coulomb friction along the wall (the reference's doc)
+            tx, ty = -ny, nx
+            rxt = rx * ty - ry * tx
+            slide = (vx * tx + vy * ty + om * rxt) * h
+            if abs(slide) <= mu_s * depth:
+                cut = -slide
+            else:
+                cut = -math.copysign(min(mu_k * depth, abs(slide)), slide)
+            if cut != 0.0:
+                wt = 1.0 / translational_drag + rxt * rxt / rotational_drag
+                x += tx * cut / (translational_drag * wt)
+                y += ty * cut / (translational_drag * wt)
+                th += rxt * cut / (rotational_drag * wt)
+                dv = cut / (h * wt)
+                vx += tx * dv / translational_drag
+                vy += ty * dv / translational_drag
+                om += rxt * dv / rotational_drag
     state[0], state[1], state[2], state[3], state[4], state[5] = x, y, th, vx, vy, om
     return touched

@@ -79,6 +79,8 @@ class Imperfections:
     stiction: float = 0.0
     rotational_friction: float = 0.0
     rotational_stiction: float = 0.0
+    wall_friction: float = 0.0  # Coulomb coefficient at the walls, kinetic
+    wall_stiction: float = 0.0  # and static
     flow_sigma: float = 0.0
     flow_time: float = 1.0
     tracker_position: float = 0.0
@@ -117,6 +119,11 @@ class Imperfections:
         )  # fmt: skip
 
     @property
+    def walls(self) -> bool:
+        """Whether the walls have friction."""
+        return self.wall_friction > 0 or self.wall_stiction > 0
+
+    @property
     def tracking(self) -> bool:
         return (
             self.tracker_position > 0 or self.tracker_heading > 0 or self.outlier_rate > 0
@@ -127,7 +134,7 @@ class Imperfections:
     def ideal(self) -> bool:
         return not (
             self.delayed or self.field_error or self.contact or self.tracking
-            or self.amplifier_tau > 0
+            or self.amplifier_tau > 0 or self.walls
         )  # fmt: skip
 
     def as_dict(self) -> dict[str, float]:

@@ -183,6 +183,8 @@ class SimRig(Rig):
         self.tracking_errors = TrackingErrors(imp, streams[2]) if imp.tracking else None
         self._history: PoseHistory | None = None
         self.fine_step = fine_step
+        #: the walls' Coulomb friction (μ_k, μ_s, sub-step), for the contact resolution
+        self._wall_friction = (imp.wall_friction, imp.wall_stiction, fine_step)
         self.camera = Camera(camera) if camera is not None else None
         self.seed = seed
         self._renderer: Renderer | None = None
@@ -389,6 +391,7 @@ class SimRig(Rig):
             if self._resolve(
                 out, walls.segments, self._disks, self._contact_radius,
                 self.robot.drag_perpendicular, self.robot.drag_rotation, 16,
+                *self._wall_friction,
             ):  # fmt: skip
                 self._contact = True
             return tuple(out.tolist())
@@ -396,6 +399,7 @@ class SimRig(Rig):
             state, touched = walls.resolve_capsule(
                 state, self._half_axis, self._contact_radius,
                 self.robot.drag_perpendicular, self.robot.drag_rotation,
+                wall_friction=self._wall_friction,
             )  # fmt: skip
             if touched:
                 self._contact = True
