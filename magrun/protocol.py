@@ -465,6 +465,20 @@ class PlantTerms(_Strict):
         description="Fraction of frames dropped (nothing delivered).",
     )  # fmt: skip
 
+    exposure_ms: float | None = _bounded(
+        200,
+        "The camera's exposure, ms: a frame shows the robot blurred over the exposure that "
+        "ends at the frame's time (the mean of 4 images along its path).",
+    )
+    glare_rate: float | None = Field(
+        None, ge=0, lt=1, allow_inf_nan=False,
+        description="Fraction of camera frames with a specular glint near the robot.",
+    )  # fmt: skip
+    occlusion_rate: float | None = Field(
+        None, ge=0, lt=1, allow_inf_nan=False,
+        description="Fraction of camera frames with a bubble or debris over or near the robot.",
+    )  # fmt: skip
+
     def terms(self) -> dict[str, float]:
         """The settings given (not None), unit-suffixed as written."""
         return {k: v for k, v in self.model_dump().items() if k in PLANT_KEYS and v is not None}
@@ -570,6 +584,9 @@ def imperfections_from_terms(t: dict[str, float]) -> Imperfections:
         outlier_rate=t["outlier_rate"],
         outlier_size=t["outlier_mm"] * 1e-3,
         drop_rate=t["drop_rate"],
+        exposure=t["exposure_ms"] * 1e-3,
+        glare_rate=t["glare_rate"],
+        occlusion_rate=t["occlusion_rate"],
     )
 
 

@@ -474,3 +474,101 @@ def test_a_bench_trial_is_the_same_every_time(tmp_path: Path) -> None:
         assert np.array_equal(a.poses[stream], b.poses[stream], equal_nan=True), stream
     assert np.array_equal(a.currents, b.currents)
     assert np.isfinite(a.poses["measured"][:, 0]).sum() > 5  # measurements arrived
+
+
+# --------------------------------------------------------------------------------------------
+# the camera's own artefacts: motion blur, glints, occluders
+
+
+def _quiet_renderer(robot_name: str = "drug_delivery"):
+    from magrun.robot import load_robot
+    from magrun.tracking.camera import Camera, CameraConfig
+    from magrun.tracking.render import Renderer
+
+    camera = Camera(CameraConfig(noise=0.0, lighting=0.0))
+    return camera, Renderer(camera, load_robot(robot_name), seed=1)
+
+
+def test_a_motion_blurred_frame_is_the_mean_of_the_frames_along_the_exposure() -> None:
+    """Without sensor noise and flicker a frame is a linear map of the scene, so the robot
+    blurred over four poses is the mean of the four sharp frames (to the uint8 rounding: one
+    grey level), and differs from the sharp frame at the exposure's end."""
+    _camera, renderer = _quiet_renderer()
+    poses = np.array([[1e-3 * k, 2e-3, 0.3 + 0.05 * k] for k in range(4)])
+    blurred = renderer.render(poses[-1], poses).astype(float)
+    sharp = np.array([renderer.render(p).astype(float) for p in poses])
+    assert np.max(np.abs(blurred - sharp.mean(axis=0))) <= 1.0
+    assert np.max(np.abs(blurred - sharp[-1])) > 20  # the blur is visible
+    # one pose over the whole exposure: the sharp frame
+    held = renderer.render(poses[0], np.repeat(poses[:1], 4, axis=0)).astype(float)
+    assert np.max(np.abs(held - sharp[0])) <= 1.0
+
+
+def test_glints_and_occluders_appear_at_their_rates_near_the_robot() -> None:
+    """Over 3000 frames, the share with a glint and with an occluder is each rate within
+    five binomial standard deviations, and every changed pixel lies within reach of the
+    robot's pixel plus the artefact's own size (a glint's 4 σ, an occluder's radius)."""
+    from magrun.rigs.plant import ImageArtifacts
+
+    camera, renderer = _quiet_renderer()
+    frame = renderer.render([0.0, 0.0, 0.0])
+    centre = camera.to_pixel([0.0, 0.0])
+    radius = 1.4e-3 * camera.scale
+    reach = 3.7e-3 * camera.scale
+    n = 3000
+    for field_name, rate, size in (("glare_rate", 0.1, 4 * 3.0), ("occlusion_rate", 0.05, radius)):
+        art = ImageArtifacts(Imperfections(**{field_name: rate}), 7, radius)
+        hits = 0
+        for _ in range(n):
+            out = art(frame, centre, reach)
+            changed = np.argwhere(np.any(out != frame, axis=2))
+            if len(changed) == 0:
+                continue
+            hits += 1
+            d = np.hypot(changed[:, 1] - centre[0], changed[:, 0] - centre[1])
+            if field_name == "occlusion_rate":
+                assert d.max() <= reach + size + 1
+            else:  # a glint's tail beyond 4 σ adds under half a grey level
+                strong = np.any(np.abs(out.astype(int) - frame) > 2, axis=2)
+                far = np.argwhere(strong)
+                assert len(far) > 0  # a glint of 120 grey levels or more shows
+                d = np.hypot(far[:, 1] - centre[0], far[:, 0] - centre[1])
+                assert d.max() <= reach + size + 1
+        se = math.sqrt(rate * (1 - rate) / n)
+        assert abs(hits / n - rate) <= 5 * se, (field_name, hits / n)
+
+
+def test_the_exposure_blurs_the_rigs_frames_and_an_ideal_camera_is_unchanged(
+    coils, channel_grid
+) -> None:
+    """A simulated rig with a camera: with no exposure its frames are those of the ideal
+    plant bit for bit; with a 40 ms exposure, a moving robot is drawn blurred (the frame
+    differs from the ideal rig's) and the artefacts' stream leaves the plant's draws as they
+    were (the same robot and gains)."""
+    from magrun.robot import load_robot
+    from magrun.tracking.camera import CameraConfig
+
+    robot = load_robot("drug_delivery")
+
+    def frames(imp: Imperfections) -> tuple[list[np.ndarray], SimRig]:
+        rig = SimRig(coils, channel_grid, robot, perturbation=Perturbation(), seed=4,
+                     camera=CameraConfig(), imperfections=imp)  # fmt: skip
+        rig.reset([0.0, 0.0, 0.0])
+        drive = np.zeros(coils.n_channels)
+        drive[0] = 20.0  # A: a gradient that pulls the robot along
+        rig.apply(drive)
+        out = []
+        start = rig.state[:2].copy()
+        for _ in range(5):
+            rig.advance(0.04)
+            out.append(rig.observe(frame=True).frame)
+        assert np.hypot(*(rig.state[:2] - start)) > 0.2e-3  # it moved
+        return out, rig
+
+    ideal, rig0 = frames(Imperfections())
+    same, _ = frames(Imperfections(glare_rate=0.0))
+    assert all(np.array_equal(a, b) for a, b in zip(ideal, same, strict=True))
+    blurred, rig1 = frames(Imperfections(exposure=0.04))
+    assert any(not np.array_equal(a, b) for a, b in zip(ideal, blurred, strict=True))
+    assert rig1.robot == rig0.robot
+    assert_allclose(rig1.coil_gains, rig0.coil_gains, rtol=0, atol=0)

@@ -88,6 +88,9 @@ class Imperfections:
     outlier_rate: float = 0.0
     outlier_size: float = 0.0
     drop_rate: float = 0.0
+    exposure: float = 0.0  # s, the camera's exposure (motion blur)
+    glare_rate: float = 0.0  # fraction of frames with a specular glint near the robot
+    occlusion_rate: float = 0.0  # fraction of frames with a bubble or debris over the robot
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -96,7 +99,7 @@ class Imperfections:
                 raise ValueError(f"{f.name} must be finite and >= 0, got {v!r}")
         if not self.flow_time > 0:
             raise ValueError(f"flow_time must be > 0, got {self.flow_time!r}")
-        for name in ("outlier_rate", "drop_rate"):
+        for name in ("outlier_rate", "drop_rate", "glare_rate", "occlusion_rate"):
             if getattr(self, name) >= 1:
                 raise ValueError(f"{name} must be below 1, got {getattr(self, name)!r}")
 
@@ -131,10 +134,15 @@ class Imperfections:
         )  # fmt: skip
 
     @property
+    def image(self) -> bool:
+        """Whether the camera's frames carry motion blur, glints or occluders."""
+        return self.exposure > 0 or self.glare_rate > 0 or self.occlusion_rate > 0
+
+    @property
     def ideal(self) -> bool:
         return not (
             self.delayed or self.field_error or self.contact or self.tracking
-            or self.amplifier_tau > 0 or self.walls
+            or self.amplifier_tau > 0 or self.walls or self.image
         )  # fmt: skip
 
     def as_dict(self) -> dict[str, float]:
@@ -378,6 +386,57 @@ class TrackingErrors:
         if u[1] < imp.outlier_rate:
             p[:2] += imp.outlier_size * xi[3:5]
         return p
+
+
+#: sub-exposures a motion-blurred frame averages
+EXPOSURE_SAMPLES = 4
+
+
+class ImageArtifacts:
+    """What a real camera's frames show besides the robot, drawn per frame near the robot
+    (where they hurt the tracker): with probability ``glare_rate`` a specular glint, a
+    Gaussian spot (σ 1–3 px) that adds 120–255 grey levels to every channel; with
+    probability ``occlusion_rate`` a bubble or a speck of debris, a disc of radius 0.5–1
+    times the robot's radius that dims what is under it to 25–45 %. Each centre lies
+    uniformly within ``reach`` px of the robot's image position. Its own random stream, so
+    turning them on changes no other draw."""
+
+    def __init__(self, imperfections: Imperfections, seed: Any, radius_px: float) -> None:
+        self.imperfections, self.seed, self.radius_px = imperfections, seed, radius_px
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def _near(self, centre: FloatArray, reach: float) -> FloatArray:
+        r, a = reach * math.sqrt(float(self.rng.uniform())), float(self.rng.uniform(0, 2 * math.pi))
+        return np.asarray(centre, float) + r * np.array([math.cos(a), math.sin(a)])
+
+    def __call__(
+        self, frame: NDArray[np.uint8], centre: FloatArray, reach: float
+    ) -> NDArray[np.uint8]:
+        """``frame`` with this frame's artefacts; ``centre`` the robot's pixel (u, v)."""
+        imp = self.imperfections
+        u = self.rng.uniform(size=2)
+        glint, speck = u[0] < imp.glare_rate, u[1] < imp.occlusion_rate
+        if not (glint or speck):
+            return frame
+        h, w = frame.shape[:2]
+        vv, uu = np.mgrid[0:h, 0:w].astype(np.float32)
+        out = frame.astype(np.float32)
+        if speck:
+            c = self._near(centre, reach)
+            radius = self.radius_px * float(self.rng.uniform(0.5, 1.0))
+            dim = float(self.rng.uniform(0.25, 0.45))
+            inside = (uu - c[0]) ** 2 + (vv - c[1]) ** 2 <= radius**2
+            out[inside] *= np.float32(dim)
+        if glint:
+            c = self._near(centre, reach)
+            sigma = float(self.rng.uniform(1.0, 3.0))
+            peak = float(self.rng.uniform(120.0, 255.0))
+            spot = peak * np.exp(-((uu - c[0]) ** 2 + (vv - c[1]) ** 2) / (2 * sigma**2))
+            out += spot[..., None]
+        return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 
 class ImperfectTracker:

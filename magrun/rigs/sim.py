@@ -48,7 +48,9 @@ from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid, GridCells, HeldField
 from magrun.rigs.base import Observation, Rig
 from magrun.rigs.plant import (
+    EXPOSURE_SAMPLES,
     IDEAL,
+    ImageArtifacts,
     Imperfections,
     OrnsteinUhlenbeck,
     PoseHistory,
@@ -178,7 +180,7 @@ class SimRig(Rig):
         self._contact_params = contact_vector(imp, self.robot, self.plant_draw.misalignment)
         self._flow_path = None if flow_path is None else np.asarray(flow_path, float)
         # the trial's processes (frame age jitter, flow, tracking errors): streams of their own
-        streams = np.random.SeedSequence([seed, 37]).spawn(3)
+        streams = np.random.SeedSequence([seed, 37]).spawn(4)
         self._stream_seeds = streams
         self.tracking_errors = TrackingErrors(imp, streams[2]) if imp.tracking else None
         self._history: PoseHistory | None = None
@@ -186,6 +188,11 @@ class SimRig(Rig):
         #: the walls' Coulomb friction (μ_k, μ_s, sub-step), for the contact resolution
         self._wall_friction = (imp.wall_friction, imp.wall_stiction, fine_step)
         self.camera = Camera(camera) if camera is not None else None
+        self.artifacts = (
+            ImageArtifacts(imp, streams[3], robot.diameter / 2 * self.camera.scale)
+            if self.camera is not None and (imp.glare_rate > 0 or imp.occlusion_rate > 0)
+            else None
+        )
         self.seed = seed
         self._renderer: Renderer | None = None
         self._contact_radius = robot.diameter / 2
@@ -256,8 +263,11 @@ class SimRig(Rig):
         )  # fmt: skip
         if self.tracking_errors is not None:
             self.tracking_errors.reset()
-        if imp.delayed:
-            self._history = PoseHistory(imp.frame_age + 6 * imp.frame_age_jitter + 0.1)
+        if self.artifacts is not None:
+            self.artifacts.reset()
+        if imp.delayed or (imp.exposure > 0 and self.camera is not None):
+            span = imp.frame_age + 6 * imp.frame_age_jitter + imp.exposure + 0.1
+            self._history = PoseHistory(span)
             self._history.reset(0.0, self.state)
 
     def observe(self, frame: bool = True) -> Observation:
@@ -268,7 +278,9 @@ class SimRig(Rig):
             age = imp.frame_age + imp.frame_age_jitter * float(self._jitter_rng.normal())
             taken = self.t - max(age, 0.0)
             seen = self._history.at(taken)
-        image = self._renderer.render(seen) if frame and self._renderer is not None else None
+        image = None
+        if frame and self._renderer is not None:
+            image = self._render(seen, taken)
         camera_pose = None
         if self._history is not None or (self.tracking_errors and self.camera is None):
             # without a camera the pipeline's errors act on the pose; with one, on what the
@@ -283,6 +295,23 @@ class SimRig(Rig):
         )  # fmt: skip
         self._contact = False
         return obs
+
+    def _render(self, seen: FloatArray, taken: float) -> NDArray[np.uint8]:
+        """The camera's frame of the robot at ``seen`` (taken at ``taken``): motion-blurred
+        over the exposure that ends then, with the frame's glints and occluders."""
+        assert self._renderer is not None
+        assert self.camera is not None
+        imp = self.imperfections
+        exposure = None
+        if imp.exposure > 0 and self._history is not None:
+            k = EXPOSURE_SAMPLES
+            times = taken - imp.exposure * (np.arange(k)[::-1] + 0.5) / k
+            exposure = np.array([self._history.at(float(t)) for t in times])
+        image = self._renderer.render(seen, exposure)
+        if self.artifacts is not None:
+            reach = (self.robot.length / 2) * self.camera.scale
+            image = self.artifacts(image, self.camera.to_pixel(seen[:2]), reach)
+        return image
 
     def apply(self, currents: ArrayLike) -> FloatArray:
         I = np.asarray(currents, dtype=np.float64)

@@ -324,20 +324,28 @@ class Renderer:
             self._noise = self.rng.standard_normal((2 * h, 2 * w, 3), dtype=np.float32)
             self._noise *= np.float32(cfg.noise * 255.0)
 
-    def render(self, pose: ArrayLike) -> NDArray[np.uint8]:
-        """The frame with the robot at ``pose`` (x, y, θ; m, rad): uint8 RGB, shape (H, W, 3)."""
+    def render(self, pose: ArrayLike, exposure: ArrayLike | None = None) -> NDArray[np.uint8]:
+        """The frame with the robot at ``pose`` (x, y, θ; m, rad): uint8 RGB, shape (H, W, 3).
+
+        ``exposure`` (k, 3): the robot's poses over the exposure instead; the robot is then the
+        mean of its k images (motion blur), the camera model applied once."""
         cfg = self.camera.config
         h, w = self.camera.shape
         image = self._lit.copy()
-        p = np.asarray(pose, dtype=np.float64)
-        c = self.camera.to_pixel(p[:2])
-        lo = np.clip(np.floor(c - self._margin), 0, (w, h)).astype(int)
-        hi = np.clip(np.ceil(c + self._margin) + 1, 0, (w, h)).astype(int)
+        poses = np.atleast_2d(np.asarray(pose if exposure is None else exposure, np.float64))
+        c = np.array([self.camera.to_pixel(p[:2]) for p in poses])
+        lo = np.clip(np.floor(c.min(axis=0) - self._margin), 0, (w, h)).astype(int)
+        hi = np.clip(np.ceil(c.max(axis=0) + self._margin) + 1, 0, (w, h)).astype(int)
         if np.all(hi > lo):
             box = (slice(lo[1], hi[1]), slice(lo[0], hi[0]))
-            patch = self._background[box].copy()
-            draw_robot(patch, self.camera, p, self.robot, origin=(int(lo[0]), int(lo[1])))
-            patch -= self._background[box]  # zero within `margin` of the window's inner sides
+            base = self._background[box]
+            patch = np.zeros_like(base)
+            for p in poses:
+                drawn = base.copy()
+                draw_robot(drawn, self.camera, p, self.robot, origin=(int(lo[0]), int(lo[1])))
+                patch += drawn - base  # zero within `margin` of the window's inner sides
+            if len(poses) > 1:
+                patch /= np.float32(len(poses))
             if cfg.blur_px > 0:  # so the reflected border equals the whole frame's blur
                 patch = np.asarray(cv2.GaussianBlur(patch, (0, 0), cfg.blur_px), np.float32)
             image[box] += patch * self._light[box]
