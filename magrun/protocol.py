@@ -217,6 +217,14 @@ class KalmanSettings(_Strict):
             "measured headings): its random walk per control tick, degrees; 0: no bias state."
         ),
     )
+    outlier_gate_sigma: NonNegativeFloat = Field(
+        0.0,
+        description=(
+            "Reject a measurement whose pose lies more than this many standard deviations "
+            "of its innovation from the filter's prediction (after 3 rejections in a row the "
+            "next one is taken); 0: take every measurement."
+        ),
+    )
 
 
 #: the simulated rig's default latency per tick, ms: a camera tick's compute for the proposed

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -204,3 +205,34 @@ def test_truncation_carries_the_heading_bias_by_regression() -> None:
 def test_a_negative_heading_bias_noise_is_refused() -> None:
     with pytest.raises(ValueError, match="heading_bias"):
         KalmanPoseFilter(KalmanConfig(heading_bias=-1e-3))
+
+
+def test_the_outlier_gate_rejects_a_far_frame_and_follows_a_real_move() -> None:
+    """With a 4 σ gate: a measurement 20 mm off, or one turned end for end, leaves the
+    estimate exactly where the prediction put it (counted as rejected), where the same
+    filter without the gate moves most of the way to it; a good measurement is fused as
+    without the gate; and when the robot really is 20 mm away, the gate rejects 3
+    measurements in a row and takes the 4th."""
+    cfg = KalmanConfig(measurement_position=1e-3, outlier_gate=4.0)
+    pose = np.array([0.01, -0.005, 0.4])
+    for far in (pose + np.array([0.02, 0.0, 0.0]), pose + np.array([0.0, 0.0, math.pi])):
+        gated, plain = KalmanPoseFilter(cfg), KalmanPoseFilter(replace(cfg, outlier_gate=0.0))
+        for kf in (gated, plain):
+            kf.reset(pose)
+            kf.update(pose, pose)
+        est = gated.update(far, pose)
+        np.testing.assert_array_equal(est, pose)
+        assert gated.rejected == 1
+        moved = plain.update(far, pose) - pose
+        assert np.max(np.abs(moved)) > 0.3 * np.max(np.abs(far - pose))
+    good = pose + np.array([0.5e-3, -0.3e-3, 0.02])
+    gated, plain = KalmanPoseFilter(cfg), KalmanPoseFilter(replace(cfg, outlier_gate=0.0))
+    for kf in (gated, plain):
+        kf.reset(pose)
+    np.testing.assert_array_equal(gated.update(good, pose), plain.update(good, pose))
+    assert gated.rejected == 0
+    moved_to = pose + np.array([0.02, 0.0, 0.0])
+    for _ in range(3):
+        np.testing.assert_array_equal(gated.update(moved_to, pose), pose)
+    assert gated.rejected == 3
+    assert np.linalg.norm(gated.update(moved_to, pose)[:2] - pose[:2]) > 0.005

@@ -47,6 +47,16 @@ no lasting error: tests/test_estimation.py), and the heading between frames foll
 robot instead of the model. The position has no such state: at σ = 2 mm and 3 Hz a velocity
 bias is not observable in the seconds over which it changes.
 
+Outlier gate (optional)
+-----------------------
+A tracker that takes a glint, a bubble or another object for the robot reports a pose far
+from it, or turned end for end, and one such frame at σ = 1 mm moves the estimate most of
+the way there. With ``outlier_gate`` = g > 0 a measurement whose innovation y (the pose,
+covariance S = P⁻ + R) has yᵀS⁻¹y > g² is not fused (the χ² test of y; with three degrees
+of freedom g = 4 rejects 1 in 1000 good measurements). Where the robot has really moved
+away from the estimate every measurement is far: after :data:`GATE_PATIENCE` rejections in
+a row the next one is taken whatever it says. ``rejected`` counts the rejections.
+
 Defaults (:class:`KalmanConfig`): measurement σ 1 mm and 3°, process σ 0.3 mm and 2° per
 40 ms tick (the NMPC's one-step prediction error on the simulated plant is ~0.1 mm, plus the
 model mismatch the per-trial perturbations add), no heading bias.
@@ -83,6 +93,9 @@ class KalmanConfig:
     heading_bias: float = 0.0
     #: the heading bias's initial standard deviation, rad per tick
     initial_heading_bias: float = math.radians(0.4)
+    #: reject a measurement whose pose lies more than this many standard deviations of
+    #: its innovation from the prediction (Mahalanobis; module doc; 0: take every one)
+    outlier_gate: float = 0.0
 
     def matrices(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``(Q, R, P0)`` as 3×3 diagonal covariances."""
@@ -97,6 +110,10 @@ class KalmanConfig:
         )
 
 
+#: measurements in a row the outlier gate rejects before it takes the next one anyway
+GATE_PATIENCE = 3
+
+
 class KalmanPoseFilter(Estimator):
     """The proposed estimator: fuse each measurement with the controller's prediction."""
 
@@ -105,6 +122,11 @@ class KalmanPoseFilter(Estimator):
         c = self.config
         if not c.heading_bias >= 0:
             raise ValueError(f"heading_bias must be >= 0, got {c.heading_bias}")
+        if not c.outlier_gate >= 0:
+            raise ValueError(f"outlier_gate must be >= 0, got {c.outlier_gate}")
+        #: measurements the gate rejected, and the current run of them
+        self.rejected = 0
+        self._run = 0
         Q, R, P0 = c.matrices()
         #: state size: the pose (3), and the heading bias (module doc) where it is on
         self.n = 4 if c.heading_bias > 0 else 3
@@ -135,8 +157,28 @@ class KalmanPoseFilter(Estimator):
         if measurement is not None:
             z = np.asarray(measurement, dtype=np.float64).copy()
             z[2] = angle_near(z[2], float(self.kf.x[2, 0]))
+            if self._gated(z):
+                return self.pose
             self.kf.update(z.reshape(3, 1))
         return self.pose
+
+    def _gated(self, z: FloatArray) -> bool:
+        """Whether the gate rejects ``z``: its innovation y (pose), covariance
+        S = P⁻ + R, is beyond ``outlier_gate`` σ (yᵀS⁻¹y > gate²), and
+        fewer than :data:`GATE_PATIENCE` measurements in a row were rejected before it
+        (then the robot has moved where the estimate did not follow: take it)."""
+        gate = self.config.outlier_gate
+        if gate <= 0:
+            return False
+        y = z - self.kf.x[:3, 0]  # θ already next to the prediction (update)
+        S = np.asarray(self.kf.P[:3, :3] + self.R, dtype=np.float64)
+        far = float(y @ np.linalg.solve(S, y)) > gate**2
+        if far and self._run < GATE_PATIENCE:
+            self._run += 1
+            self.rejected += 1
+            return True
+        self._run = 0
+        return False
 
     @property
     def pose(self) -> FloatArray:
@@ -144,12 +186,13 @@ class KalmanPoseFilter(Estimator):
         return np.asarray(self.kf.x[:3, 0], dtype=np.float64).copy()
 
     def snapshot(self) -> object:
-        return self.kf.x.copy(), self.kf.P.copy()
+        return self.kf.x.copy(), self.kf.P.copy(), self._run, self.rejected
 
     def restore(self, state: object) -> None:
-        saved = cast(tuple[FloatArray, FloatArray], state)
+        saved = cast(tuple[FloatArray, FloatArray, int, int], state)
         self.kf.x = saved[0].copy()
         self.kf.P = saved[1].copy()
+        self._run, self.rejected = saved[2], saved[3]
 
     @property
     def heading_bias(self) -> float:
