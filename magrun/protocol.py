@@ -396,6 +396,11 @@ def _bounded(upper: float, description: str) -> Any:
     return Field(None, ge=0, le=upper, allow_inf_nan=False, description=description)
 
 
+def _fraction(description: str) -> Any:
+    """An optional fraction in [0, 1) (None: the preset's value)."""
+    return Field(None, ge=0, lt=1, allow_inf_nan=False, description=description)
+
+
 class PlantTerms(_Strict):
     """A real bench's imperfections (:mod:`magrun.rigs.plant`), unit-suffixed. In a plant file
     (and a preset) a key left out is off; in a protocol's ``simulation`` it is the plant's."""
@@ -463,29 +468,21 @@ class PlantTerms(_Strict):
     tracker_sigma_deg: float | None = _bounded(
         90, "The camera pipeline's own white noise on each frame's heading, degrees."
     )
-    outlier_rate: float | None = Field(
-        None, ge=0, lt=1, allow_inf_nan=False,
-        description="Fraction of frames whose position is an outlier.",
-    )  # fmt: skip
+    outlier_rate: float | None = _fraction("Fraction of frames whose position is an outlier.")
     outlier_mm: float | None = _bounded(100, "σ of an outlier's displacement, per axis, mm.")
-    drop_rate: float | None = Field(
-        None, ge=0, lt=1, allow_inf_nan=False,
-        description="Fraction of frames dropped (nothing delivered).",
-    )  # fmt: skip
+    drop_rate: float | None = _fraction("Fraction of frames dropped (nothing delivered).")
 
     exposure_ms: float | None = _bounded(
         200,
         "The camera's exposure, ms: a frame shows the robot blurred over the exposure that "
         "ends at the frame's time (the mean of 4 images along its path).",
     )
-    glare_rate: float | None = Field(
-        None, ge=0, lt=1, allow_inf_nan=False,
-        description="Fraction of camera frames with a specular glint near the robot.",
-    )  # fmt: skip
-    occlusion_rate: float | None = Field(
-        None, ge=0, lt=1, allow_inf_nan=False,
-        description="Fraction of camera frames with a bubble or debris over or near the robot.",
-    )  # fmt: skip
+    glare_rate: float | None = _fraction(
+        "Fraction of camera frames with a specular glint near the robot."
+    )
+    occlusion_rate: float | None = _fraction(
+        "Fraction of camera frames with a bubble or debris over or near the robot."
+    )
 
     def terms(self) -> dict[str, float]:
         """The settings given (not None), unit-suffixed as written."""
