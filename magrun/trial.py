@@ -223,6 +223,7 @@ def control_config(
         nmpc=NMPCConfig(
             horizon=settings.horizon,
             field_error=settings.field_error_percent / 100,
+            soft_constraints=settings.soft_constraints,
             field_heading_error=math.radians(settings.field_heading_error_deg),
         ),
         linear_mpc=LinearMPCConfig(horizon=settings.horizon),

@@ -140,7 +140,8 @@ def test_corridor_holds_in_the_plan_and_both_solvers_agree(zernike_model) -> Non
     """A reference 1 mm inside the anterior wall (the critical one): both solvers, to
     convergence, plan every state with the body's ends on the free side of the stage's
     critical half-plane, the margin away (to the soft constraint's sag: 0.05 mm at this
-    weight), and agree."""
+    weight), and agree; the real-time iteration with the soft constraints as slacks in its
+    QPs as well as with them as penalty residuals."""
     phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
     robot = load_robots()["drug_delivery"]
     fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
@@ -155,8 +156,9 @@ def test_corridor_holds_in_the_plan_and_both_solvers_agree(zernike_model) -> Non
     )  # fmt: skip
     converge = {"iterations": 60, "first_tick_iterations": 60, "step_tolerance": 1e-9}
     plans = {}
-    for solver in ("rti", "ipopt"):
-        cfg = NMPCConfig(solver=solver, corridor_weight=1e4, tol=1e-10, **converge)  # type: ignore[arg-type]
+    for solver, soft in (("rti", "penalty"), ("rti", "slack"), ("ipopt", "penalty")):
+        cfg = NMPCConfig(solver=solver, corridor_weight=1e4, tol=1e-10, soft_constraints=soft,  # type: ignore[arg-type]
+                         **converge)  # fmt: skip
         if solver == "ipopt":
             cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
         nmpc = NMPC(zernike_model, robot, cfg, fs)
@@ -166,8 +168,9 @@ def test_corridor_holds_in_the_plan_and_both_solvers_agree(zernike_model) -> Non
         poses = X[:, :3] * STATE_SCALE[:3]
         clear = np.array([fs.clearance(p, [fs.critical]) for p in poses])  # type: ignore[list-item]
         assert clear.min() >= cfg.corridor_margin - 0.05e-3, (solver, clear.min())
-        plans[solver] = nmpc.backend.currents_plan()
-    np.testing.assert_allclose(plans["rti"], plans["ipopt"], atol=2e-3)
+        plans[f"{solver}-{soft}"] = nmpc.backend.currents_plan()
+    np.testing.assert_allclose(plans["rti-penalty"], plans["ipopt-penalty"], atol=2e-3)
+    np.testing.assert_allclose(plans["rti-slack"], plans["ipopt-penalty"], atol=2e-3)
 
 
 def test_short_spine_trial_with_exact_feedback_keeps_off_the_critical_wall() -> None:

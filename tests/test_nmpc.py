@@ -145,8 +145,11 @@ def _problem(kind: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return state, ref, previous
 
 
-def _solve(model, robot, solver: str, kind: str, qp: str = "direct") -> tuple[NMPC, np.ndarray]:
-    cfg = NMPCConfig(solver=solver, tol=1e-10, rti_qp=qp, **CONVERGE)  # type: ignore[arg-type]
+def _solve(
+    model, robot, solver: str, kind: str, qp: str = "direct", soft: str = "penalty"
+) -> tuple[NMPC, np.ndarray]:
+    cfg = NMPCConfig(solver=solver, tol=1e-10, rti_qp=qp, soft_constraints=soft,  # type: ignore[arg-type]
+                     **CONVERGE)  # fmt: skip
     if solver == "ipopt":
         cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
     nmpc = NMPC(model, robot, cfg)
@@ -172,14 +175,23 @@ def _ipopt(model, robot, kind: str) -> tuple[NMPC, np.ndarray]:
     return _IPOPT[kind]
 
 
-@pytest.mark.parametrize("qp", ["direct", "casadi"])
+@pytest.mark.parametrize(("qp", "soft"), [("direct", "slack"), ("direct", "penalty"),
+                                          ("casadi", "penalty")])  # fmt: skip
 @pytest.mark.parametrize("kind", ["track", "slew", "wall"])
 def test_rti_converges_to_the_ipopt_optimum(
-    zernike_model, magnet_robot, kind: str, qp: str
+    zernike_model, magnet_robot, kind: str, qp: str, soft: str
 ) -> None:
     """Whole current plans agree within 1e-4 of the limit, objectives within 1e-6 relative,
-    with the QPs through magrun's compiled HPIPM kernel and through CasADi's interface."""
-    rti, u_rti = _solve(zernike_model, magnet_robot, "rti", kind, qp)
+    with the QPs through magrun's compiled HPIPM kernel (the soft constraints as slacks or
+    as penalty residuals) and through CasADi's interface. On each problem the heading-stable
+    field's soft term is active: the optimum leaves the field along the moment short of B_min
+    somewhere (by 0.003-2 %), so the slacks are tested where they matter."""
+    rti, u_rti = _solve(zernike_model, magnet_robot, "rti", kind, qp, soft)
+    X = rti.backend.states_plan()
+    assert X is not None
+    starts = [_problem(kind)[0] / STATE_SCALE, *X[:-1]]
+    gaps = [float(rti.problem.heading_gap(x, u)) for x, u in zip(starts, u_rti, strict=True)]
+    assert min(gaps) < 0
     ipopt, u_ipopt = _ipopt(zernike_model, magnet_robot, kind)
     assert_allclose(u_rti, u_ipopt, atol=1e-4)
     state, ref, previous = _problem(kind)
@@ -314,26 +326,30 @@ def test_feedback_after_a_preparation_at_the_start_is_the_plain_iteration(
 
 def test_feedback_embeds_the_measured_state_to_first_order(zernike_model, magnet_robot) -> None:
     """Prepared at a predicted state x_p, the feedback at the measured x_p + h d solves the
-    QP linearised at x_p with the start moved exactly for the linear model. Its currents
-    differ from the QP linearised at the measured state by O(h²) (the linearisation's
-    curvature), where leaving the move out of the dynamics or the cost would leave O(h).
-    Over a factor 10 in h the difference must shrink by at least 30 (100 in theory)."""
+    QP linearised at x_p with the start moved exactly for the linear model: its currents
+    answer the move as the QP linearised at the measured state does, to first order. The
+    two differ by the linearisation's curvature times the QP's step (O(h) here: the shifted
+    plan is not the optimum of the next tick), 0.6 % of the answer on this problem, where
+    leaving the move out of the dynamics leaves 100 %."""
     ref_next = _problem("track")[1]
     d = np.array([1e-3, -0.6e-3, 0.05, 2e-3, 1e-3, 0.1])  # m, rad, m/s, rad/s
-    gaps = []
-    for h in (0.01, 0.001):
+    h = 1e-3
+    answers = []
+    for move in (0.0, h):
         plain, state, _, currents = _warm(zernike_model, magnet_robot)
         split, _, _, _ = _warm(zernike_model, magnet_robot)
         x_p = plain.predict(state, currents)
-        measured = x_p + h * d
+        measured = x_p + move * d
         a = plain.plan(measured, ref_next, currents)
         split.prepare(x_p, ref_next, currents)
         b = split.plan(measured, ref_next, currents)
         assert b.status.success
         assert b.status.prepare_time > 0
-        gaps.append(np.max(np.abs(b.currents - a.currents)))
-    assert gaps[0] > 1e-6  # the move is felt at all
-    assert gaps[0] / gaps[1] > 30, gaps
+        answers.append((a.currents, b.currents))
+    relinearised = answers[1][0] - answers[0][0]
+    embedded = answers[1][1] - answers[0][1]
+    assert np.max(np.abs(embedded)) > 1e-3  # the move is felt (A)
+    assert np.linalg.norm(embedded - relinearised) < 0.03 * np.linalg.norm(relinearised)
 
 
 def test_a_measurement_far_from_the_prediction_is_linearised_afresh(

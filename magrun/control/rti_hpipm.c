@@ -3,14 +3,17 @@
  * Compiled by magrun/control/rti_kernel.py into one shared library together with the
  * CasADi-generated stage functions, which define before this file is included:
  *
- *   rti_stage(s, v, par)   -> s_next, A = ds_next/ds, B = ds_next/dv, r, Js = dr/ds, Jv = dr/dv
- *   rti_terminal(s, par)   -> rN, JN = drN/ds
+ *   rti_stage(s, v, par)   -> s_next, A = ds_next/ds, B = ds_next/dv, r, Js = dr/ds, Jv = dr/dv,
+ *                             g, Gs = dg/ds, Gv = dg/dv
+ *   rti_terminal(s, par)   -> rN, JN = drN/ds, gN, GN = dgN/ds
  *   rti_heading(X, u)      -> the heading-stable field's residual (one row, or none)
  *   rti_step(X, u)         -> X_next, one step of the model (the planner's prediction)
  *
  * all outputs dense and column-major, and the dimensions RTI_N (horizon), RTI_NS (stage
  * state s = (X, u_prev)), RTI_NU (currents), RTI_NR / RTI_NRT (stage / terminal residual
- * rows), RTI_NP (stage parameters), RTI_NB (bounded state entries), RTI_HEADING (0 or 1).
+ * rows), RTI_NG / RTI_NGT (stage / terminal soft-constraint rows), RTI_NGH (the first of the
+ * stage's soft rows that stage 0 keeps: the heading's, the only ones that depend on v_0),
+ * RTI_NP (stage parameters), RTI_NB (bounded state entries), RTI_HEADING (0 or 1).
  *
  * The QP is in steps from the iterate (S = s_1 … s_N, V = v_0 … v_{N-1}), with the
  * Gauss-Newton cost of the stacked residuals, 1/2 |r + Js ds + Jv dv|^2 per stage:
@@ -18,9 +21,20 @@
  *   Q = Js'Js, S = Jv'Js (nu x nx), R = Jv'Jv, q = Js'r, r = Jv'r, (+ reg on the diagonals)
  *   ds_{k+1} = A_k ds_k + B_k dv_k + (f(s_k, v_k) - s_{k+1})
  *
+ * and the soft constraints g(s, v) >= 0 (the weighted gaps of the heading-stable field and
+ * the corridor) linearised, each with a slack sl >= 0 that costs sl^2 (1/2 sl^2 in this
+ * QP, whose cost is half the problem's):
+ *
+ *   g + Gs ds + Gv dv + sl >= 0           (HPIPM: lg = -g, C = Gs, D = Gv, Zl = 1, zl = 0)
+ *
+ * the same penalty as a residual min(0, g) in the cost, whose Gauss-Newton model is blind to
+ * a constraint inactive at the iterate: one step then plans straight through it, the next
+ * back out, and a real-time iteration (one step a tick) alternates between the two.
+ *
  * Stage 0 has no state in the QP: its start s_0 is given. The stage is linearised at a point
  * s_lin (prepare) and the measured s_0 enters when it is known (feedback), exactly for the
- * linear model: b_0 = gap_0 + A_0 (s_0 - s_lin), r_0 = Jv_0'(r_0 + Js_0 (s_0 - s_lin)).
+ * linear model: b_0 = gap_0 + A_0 (s_0 - s_lin), r_0 = Jv_0'(r_0 + Js_0 (s_0 - s_lin)),
+ * lg_0 = -(g_0 + Gs_0 (s_0 - s_lin)).
  * That is the real-time iteration's preparation / feedback split; with s_lin = s_0 it is the
  * plain iteration.
  *
@@ -39,6 +53,10 @@
 #include "hpipm_d_ocp_qp_sol.h"
 
 #define RTI_REG 1e-9 /* keeps H positive definite along the unweighted velocities */
+/* array sizes that may be zero */
+#define RTI_NG1 (RTI_NG > 0 ? RTI_NG : 1)
+#define RTI_NGT1 (RTI_NGT > 0 ? RTI_NGT : 1)
+#define RTI_NGMAX (RTI_NG1 > RTI_NGT1 ? RTI_NG1 : RTI_NGT1)
 
 typedef struct {
     double S[RTI_N * RTI_NS]; /* s_1 … s_N, one after another */
@@ -46,10 +64,13 @@ typedef struct {
     double s_lin[RTI_NS], par0[RTI_NP];
     /* stage 0's linearisation, for the feedback */
     double A0[RTI_NS * RTI_NS], gap0[RTI_NS], r0[RTI_NR], Js0[RTI_NR * RTI_NS],
-        Jv0[RTI_NR * RTI_NU];
+        Jv0[RTI_NR * RTI_NU], g0[RTI_NG1], Gs0[RTI_NG1 * RTI_NS];
     /* bounds */
     double du_max[RTI_NU], s_lb[RTI_NB], s_ub[RTI_NB];
     int idxbx[RTI_NB], idxbu[RTI_NU];
+    /* soft constraints: each general row's slack index, its costs, a zero mask */
+    int idxs[RTI_NGMAX];
+    double Zs[RTI_NGMAX], zs[RTI_NGMAX], off[RTI_NGMAX];
     /* HPIPM */
     int nx[RTI_N + 1], nu[RTI_N + 1], nbx[RTI_N + 1], nbu[RTI_N + 1], ng[RTI_N + 1],
         nsoft[RTI_N + 1];
@@ -67,7 +88,9 @@ typedef struct {
     double *w;
     /* scratch */
     double sn[RTI_NS], A[RTI_NS * RTI_NS], B[RTI_NS * RTI_NU], r[RTI_NR], Js[RTI_NR * RTI_NS],
-        Jv[RTI_NR * RTI_NU], rN[RTI_NRT], JN[RTI_NRT * RTI_NS];
+        Jv[RTI_NR * RTI_NU], rN[RTI_NRT], JN[RTI_NRT * RTI_NS], g[RTI_NG1],
+        Gs[RTI_NG1 * RTI_NS], Gv[RTI_NG1 * RTI_NU], gN[RTI_NGT1], GN[RTI_NGT1 * RTI_NS],
+        lg[RTI_NGMAX], D[RTI_NG1 * RTI_NU];
     double Q[RTI_NS * RTI_NS], Sc[RTI_NU * RTI_NS], R[RTI_NU * RTI_NU], q[RTI_NS], rv[RTI_NU],
         b[RTI_NS], lb[RTI_NS], ub[RTI_NS], lbu[RTI_NU], ubu[RTI_NU], step[RTI_NS];
 } rti_mem;
@@ -141,7 +164,10 @@ void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, con
         m->nu[k] = k == RTI_N ? 0 : RTI_NU;
         m->nbx[k] = k == 0 ? 0 : RTI_NB;
         m->nbu[k] = m->nu[k];
+        m->ng[k] = k == 0 ? RTI_NGH : k == RTI_N ? RTI_NGT : RTI_NG;
+        m->nsoft[k] = m->ng[k];
     }
+    for (int i = 0; i < RTI_NGMAX; ++i) m->Zs[i] = 1.0, m->zs[i] = 0.0, m->off[i] = 0.0;
     int ok = 1;
     ok &= (m->memory[0] = malloc(d_ocp_qp_dim_memsize(RTI_N))) != NULL;
     if (!ok) goto fail;
@@ -170,6 +196,21 @@ void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, con
     for (int k = 0; k <= RTI_N; ++k) {
         if (k < RTI_N) d_ocp_qp_set_idxbu(k, m->idxbu, &m->qp);
         if (k > 0) d_ocp_qp_set_idxbx(k, m->idxbx, &m->qp);
+        if (m->ng[k] == 0) continue;
+        /* the general rows come after the bounds; each row its own slack, which costs
+         * 1/2 Zl sl^2 = 1/2 sl^2 (the QP's cost is half the problem's); only the lower side:
+         * the upper one is masked off */
+        int nb = m->nbu[k] + m->nbx[k];
+        for (int i = 0; i < m->ng[k]; ++i) m->idxs[i] = nb + i;
+        d_ocp_qp_set_idxs(k, m->idxs, &m->qp);
+        d_ocp_qp_set_Zl(k, m->Zs, &m->qp);
+        d_ocp_qp_set_Zu(k, m->Zs, &m->qp);
+        d_ocp_qp_set_zl(k, m->zs, &m->qp);
+        d_ocp_qp_set_zu(k, m->zs, &m->qp);
+        d_ocp_qp_set_lls(k, m->off, &m->qp);
+        d_ocp_qp_set_lus(k, m->off, &m->qp);
+        d_ocp_qp_set_ug(k, m->off, &m->qp);
+        d_ocp_qp_set_ug_mask(k, m->off, &m->qp);
     }
     /* CasADi's work vectors: the largest of the three functions' */
     casadi_int n_arg = 0, n_res = 0, n_iw = 0, n_w = 0, a, r, i, w;
@@ -228,6 +269,7 @@ static void eval_stage(rti_mem *m, const double *s, const double *v, const doubl
     m->arg_ptr[0] = s, m->arg_ptr[1] = v, m->arg_ptr[2] = par;
     m->res_ptr[0] = m->sn, m->res_ptr[1] = m->A, m->res_ptr[2] = m->B;
     m->res_ptr[3] = m->r, m->res_ptr[4] = m->Js, m->res_ptr[5] = m->Jv;
+    m->res_ptr[6] = m->g, m->res_ptr[7] = m->Gs, m->res_ptr[8] = m->Gv;
     rti_stage(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
 }
 
@@ -242,7 +284,9 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
         const double *v = m->V + k * RTI_NU;
         eval_stage(m, s, v, par + k * RTI_NP);
         for (int i = 0; i < RTI_NS; ++i) m->b[i] = m->sn[i] - m->S[k * RTI_NS + i];
-        if (!all_finite(RTI_NS, m->b) || !all_finite(RTI_NR, m->r)) return -1;
+        if (!all_finite(RTI_NS, m->b) || !all_finite(RTI_NR, m->r) ||
+            !all_finite(RTI_NG, m->g))
+            return -1;
         tmul(RTI_NR, RTI_NU, RTI_NU, m->Jv, m->Jv, m->R);
         add_reg(RTI_NU, m->R);
         d_ocp_qp_set_R(k, m->R, &m->qp);
@@ -253,6 +297,13 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
             memcpy(m->r0, m->r, sizeof(m->r0));
             memcpy(m->Js0, m->Js, sizeof(m->Js0));
             memcpy(m->Jv0, m->Jv, sizeof(m->Jv0));
+            memcpy(m->g0, m->g, sizeof(m->g0));
+            memcpy(m->Gs0, m->Gs, sizeof(m->Gs0));
+            if (RTI_NGH > 0) { /* the heading's rows of D (column-major, NG rows) */
+                for (int j = 0; j < RTI_NU; ++j)
+                    for (int i = 0; i < RTI_NGH; ++i) m->D[i + j * RTI_NGH] = m->Gv[i + j * RTI_NG];
+                d_ocp_qp_set_D(0, m->D, &m->qp);
+            }
         } else {
             tmul(RTI_NR, RTI_NU, 1, m->Jv, m->r, m->rv);
             tmul(RTI_NR, RTI_NS, RTI_NS, m->Js, m->Js, m->Q);
@@ -266,6 +317,12 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
             d_ocp_qp_set_q(k, m->q, &m->qp);
             d_ocp_qp_set_r(k, m->rv, &m->qp);
             set_state_bounds(m, k, s);
+            if (RTI_NG > 0) {
+                for (int i = 0; i < RTI_NG; ++i) m->lg[i] = -m->g[i];
+                d_ocp_qp_set_C(k, m->Gs, &m->qp);
+                d_ocp_qp_set_D(k, m->Gv, &m->qp);
+                d_ocp_qp_set_lg(k, m->lg, &m->qp);
+            }
         }
         for (int i = 0; i < RTI_NU; ++i) {
             m->lbu[i] = -m->du_max[i] - v[i];
@@ -276,15 +333,20 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
     }
     const double *sN = m->S + (RTI_N - 1) * RTI_NS;
     m->arg_ptr[0] = sN, m->arg_ptr[1] = par + RTI_N * RTI_NP;
-    m->res_ptr[0] = m->rN, m->res_ptr[1] = m->JN;
+    m->res_ptr[0] = m->rN, m->res_ptr[1] = m->JN, m->res_ptr[2] = m->gN, m->res_ptr[3] = m->GN;
     rti_terminal(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
-    if (!all_finite(RTI_NRT, m->rN)) return -1;
+    if (!all_finite(RTI_NRT, m->rN) || !all_finite(RTI_NGT, m->gN)) return -1;
     tmul(RTI_NRT, RTI_NS, RTI_NS, m->JN, m->JN, m->Q);
     add_reg(RTI_NS, m->Q);
     tmul(RTI_NRT, RTI_NS, 1, m->JN, m->rN, m->q);
     d_ocp_qp_set_Q(RTI_N, m->Q, &m->qp);
     d_ocp_qp_set_q(RTI_N, m->q, &m->qp);
     set_state_bounds(m, RTI_N, sN);
+    if (RTI_NGT > 0) {
+        for (int i = 0; i < RTI_NGT; ++i) m->lg[i] = -m->gN[i];
+        d_ocp_qp_set_C(RTI_N, m->GN, &m->qp);
+        d_ocp_qp_set_lg(RTI_N, m->lg, &m->qp);
+    }
     return 0;
 }
 
@@ -323,6 +385,14 @@ int rti_feedback(void *handle, const double *s0, double *info, double max_defect
     tmul(RTI_NR, RTI_NU, 1, m->Jv0, e, m->rv);
     d_ocp_qp_set_b(0, m->b, &m->qp);
     d_ocp_qp_set_r(0, m->rv, &m->qp);
+    if (RTI_NGH > 0) { /* the heading's gap at s0, to first order */
+        for (int i = 0; i < RTI_NGH; ++i) {
+            double acc = m->g0[i];
+            for (int j = 0; j < RTI_NS; ++j) acc += m->Gs0[i + j * RTI_NG] * ds[j];
+            m->lg[i] = -acc;
+        }
+        d_ocp_qp_set_lg(0, m->lg, &m->qp);
+    }
     int status = 0, iter = 0, robust = 0;
     d_ocp_qp_ipm_solve(&m->qp, &m->sol, &m->arg[0], &m->ws[0]);
     d_ocp_qp_ipm_get_status(&m->ws[0], &status);

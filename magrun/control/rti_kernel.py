@@ -94,9 +94,11 @@ def build_kernel(
 ) -> Path | None:
     """Generate and compile the kernel; the library's path, or None (module doc).
 
-    ``stage(s, v, par)`` → (s_next, A, B, r, Js, Jv), ``terminal(s, par)`` → (rN, JN),
-    ``heading(X, u)`` → the heading residual (one row), all outputs dense; ``step(X, u)`` →
-    the next state (the planner's prediction); ``dims``: N, NS, NU, NR, NRT, NP, NB.
+    ``stage(s, v, par)`` → (s_next, A, B, r, Js, Jv, g, Gs, Gv), ``terminal(s, par)`` →
+    (rN, JN, gN, GN), with g the soft constraints' weighted gaps (≥ 0 where kept; the
+    heading's row first), ``heading(X, u)`` → the heading residual (one row), all outputs
+    dense; ``step(X, u)`` → the next state (the planner's prediction); ``dims``: N, NS, NU,
+    NR, NRT, NG, NGT, NGH (stage 0's soft rows: the heading's), NP, NB.
     """
     link = _link_args()
     if link is None:
