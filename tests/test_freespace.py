@@ -173,6 +173,47 @@ def test_corridor_holds_in_the_plan_and_both_solvers_agree(zernike_model) -> Non
     np.testing.assert_allclose(plans["rti-slack"], plans["ipopt-penalty"], atol=2e-3)
 
 
+def test_one_real_time_iteration_sees_the_corridor_before_it_is_violated(zernike_model) -> None:
+    """A plan converged on a reference 2 mm clear of the corridor, then the reference moved
+    1 mm inside the anterior wall and one Gauss-Newton step per tick. With the soft
+    constraints as slacks in the QP the first step already plans every state at the
+    corridor's margin (0.5 mm, to 0.01 mm). With penalty residuals min(0, g) the step does
+    not see the corridor, inactive where it linearised, and plans the body through the wall
+    (1 mm past it on this problem); the next step comes back to the margin."""
+    phantom = load_phantom(PROTOCOLS / "phantoms" / "spine_l3l4.yaml")
+    robot = load_robots()["drug_delivery"]
+    fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+    centre = np.array([-6e-3, 0.0])
+    a0 = math.radians(-40.0)
+    state = np.array([*(centre + 13.0e-3 * np.array([math.cos(a0), math.sin(a0)])),
+                      a0 + math.pi / 2, 0.0, 0.0, 0.0])  # fmt: skip
+    angles = a0 + np.linspace(0.0, 0.15, 21)
+
+    def reference(radius: float) -> np.ndarray:
+        x, y = centre[0] + radius * np.cos(angles), centre[1] + radius * np.sin(angles)
+        return np.column_stack([x, y, angles + math.pi / 2])
+
+    least = {}
+    for soft in ("slack", "penalty"):
+        cfg = NMPCConfig(soft_constraints=soft, corridor_weight=1e4)  # type: ignore[arg-type]
+        nmpc = NMPC(zernike_model, robot, cfg, fs)
+        if nmpc.backend.kernel is None:
+            pytest.skip("the slacks need the compiled kernel (no C compiler here)")
+        assert nmpc.plan(state, reference(13.0e-3), np.zeros(8)).status.success
+        previous = nmpc.backend.currents_plan()[0] * nmpc.max_current  # type: ignore[index]
+        least[soft] = []
+        for _ in range(2):
+            assert nmpc.plan(state, reference(10.9e-3), previous).status.success
+            X = nmpc.backend.states_plan()
+            assert X is not None
+            poses = X[:, :3] * STATE_SCALE[:3]
+            least[soft].append(min(fs.clearance(p, [fs.critical]) for p in poses))  # type: ignore[arg-type]
+    margin = NMPCConfig().corridor_margin
+    assert least["slack"] == pytest.approx([margin, margin], abs=0.01e-3)
+    assert least["penalty"][0] < -0.5e-3  # through the wall
+    assert least["penalty"][1] == pytest.approx(margin, abs=0.01e-3)
+
+
 def test_short_spine_trial_with_exact_feedback_keeps_off_the_critical_wall() -> None:
     """The proposed controller in the spine phantom, exact feedback every tick, the first 12 s
     (the channel up to the chamber): the body never comes within 0.05 mm of the anterior
