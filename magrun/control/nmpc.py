@@ -449,15 +449,16 @@ class OCP:
         return self.heading_residual(X, u) if self.has_heading else ca.DM.zeros(0, 1)
 
     def soft_gaps(self, X: Any, u: Any | None, par: Any) -> Any:
-        """The weighted gaps of a stage's soft constraints (heading when ``u`` is given, the
-        corridor): the IPOPT form, with a slack s ≥ 0 per row, gap + s ≥ 0 and cost s², which
-        is the same penalty as the residuals min(0, gap) and smooth for an exact Hessian."""
+        """The weighted gaps of a stage's soft constraints (heading when ``u`` is given, first;
+        the corridor), in X's symbolic type (SX or MX): a slack s ≥ 0 per row, gap + s ≥ 0
+        and cost s², is the same penalty as the residuals min(0, gap) and smooth for an
+        exact Hessian (IPOPT; the RTI kernel's QP with soft_constraints="slack")."""
         parts = []
         if u is not None and self.has_heading:
             parts.append(self.heading_gap(X, u))
         if self.has_corridor:
             parts.append(self.corridor_gap(X, par))
-        return ca.vertcat(*parts) if parts else ca.MX(0, 1)
+        return ca.vertcat(*parts) if parts else type(X)(0, 1)
 
     def maybe_compiled(self, function: ca.Function) -> ca.Function:
         return compiled(function) if self.config.compile else function
@@ -738,7 +739,7 @@ class RTISolver(_Backend):
         rN_all = ca.vertcat(ocp.pose_residual["terminal"](X, ref), ocp.corridor(X, ref))
         if cfg.soft_constraints == "slack":
             r, rN = ca.vertcat(pose, currents), ocp.pose_residual["terminal"](X, ref)
-            g, gN = self._gaps(ocp, X, u, ref), self._gaps(ocp, X, None, ref)
+            g, gN = ocp.soft_gaps(X, u, ref), ocp.soft_gaps(X, None, ref)
         else:
             r, rN, g, gN = r_all, rN_all, ca.SX(0, 1), ca.SX(0, 1)
         # common subexpressions: the heading's derivatives repeat the field's derivatives the
@@ -839,17 +840,6 @@ class RTISolver(_Backend):
     #: HPIPM's options that the kernel takes from ``NMPCConfig.hpipm`` (CasADi's names), with
     #: ``iter_max`` and ``mu0``
     KERNEL_TOLERANCES = ("res_g_max", "res_b_max", "res_d_max", "res_m_max")
-
-    @staticmethod
-    def _gaps(ocp: OCP, X: Any, u: Any | None, ref: Any) -> Any:
-        """A stage's soft constraints' weighted gaps (≥ 0 where kept), SX: the heading's
-        (with ``u``; first) and the corridor's."""
-        parts = []
-        if u is not None and ocp.has_heading:
-            parts.append(ocp.heading_gap(X, u))
-        if ocp.has_corridor:
-            parts.append(ocp.corridor_gap(X, ref))
-        return ca.vertcat(*parts) if parts else ca.SX(0, 1)
 
     def _kernel(
         self, stage: ca.Function, terminal: ca.Function, n_r: int, n_rt: int, n_g: int,
