@@ -338,13 +338,22 @@ def sweep(data: Dataset, protocol: str) -> Figure:
             (grid[r, 1], "rms_orientation_deg", "RMS orientation error (deg)",
              f"({chr(98 + 2 * r)})"),
         ):  # fmt: skip
+            # errors spanning decades (a lost robot beside sub-millimetre ones) go on a log
+            # axis, where mean ± sd can reach below zero: the bars then give the trials'
+            # range, which a log axis can show
+            log = bool(subset[value].min() > 0 and subset[value].max() / subset[value].min() > 30)
             sns.lineplot(
                 data=subset, x=swept, y=value, hue="method", hue_order=methods,
                 palette=palette, style="method", style_order=methods, markers=True,
-                dashes=False, errorbar="sd", err_style="bars", err_kws={"capsize": 3}, ax=ax,
+                dashes=False, errorbar=("pi", 100) if log else "sd", err_style="bars",
+                err_kws={"capsize": 3}, ax=ax,
             )  # fmt: skip
-            if subset[value].min() > 0 and subset[value].max() / subset[value].min() > 30:
+            if log:
                 ax.set_yscale("log")
+            ax.text(
+                0.01, 0.01, "mean of the trials; bars: " + ("their range" if log else "± 1 sd"),
+                transform=ax.transAxes, fontsize=7, color="0.35", ha="left", va="bottom",
+            )  # fmt: skip
             what = f"{label.split(' (')[0]} vs {CONDITION_LABELS[swept].split(' (')[0]}"
             ax.set(
                 xlabel=CONDITION_LABELS[swept],

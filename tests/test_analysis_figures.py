@@ -392,3 +392,36 @@ def test_prediction_headline_is_against_the_measured_pose_where_recorded() -> No
     assert "against the truth: 0.420 mm" in yes.ours
     assert head(0.80, 6.5).verdict == "no"
     assert head(0.75, 7.1).verdict == "no"
+
+
+def test_a_log_scaled_sweep_draws_the_trials_range_not_a_negative_sd(tmp_path: Path) -> None:
+    """A method that loses the robot in one trial (60 mm) and not in the other (1 mm) puts the
+    sweep on a log axis, where its mean − sd (−11 mm) cannot be drawn: the bars there are the
+    trials' range, every end positive and equal to a trial's RMS; a linear axis keeps ± 1 sd."""
+    offsets = {("baseline2", 0): 60e-3, ("baseline2", 1): 1e-3}
+    trials = [
+        SynthTrial(
+            "lost", method, trial=k, conditions={"tracking_rate_hz": rate, "noise_sigma_mm": 2.0},
+            offset=(offsets.get((method, k), 0.5e-3 * (1 + 0.2 * k)) if rate == 3.0 else 0.4e-3,
+                    0.0, 0.0),
+        )
+        for method in ("proposed", "baseline2")
+        for rate in (3.0, 25.5)
+        for k in (0, 1)
+    ]  # fmt: skip
+    data = analysis.load(write_set(tmp_path, trials))
+    fig = figures.sweep(data, "lost")
+    ax = fig.axes[0]
+    assert ax.get_yscale() == "log"
+    rms = data.ok("lost")
+    lost = rms[(rms["method"] == "baseline2") & (rms["tracking_rate_hz"] == 3.0)]["rms_position_mm"]
+    assert float(lost.mean() - lost.std()) < 0  # what ± sd would have drawn
+    ends = np.vstack([seg for c in ax.collections for seg in c.get_segments()])
+    assert np.all(ends[:, 1] > 0)
+    at3 = ends[np.isclose(ends[:, 0], 3.0), 1]
+    np.testing.assert_allclose(at3.max(), lost.max(), rtol=1e-9)
+    np.testing.assert_allclose(
+        at3.min(), rms[rms["tracking_rate_hz"] == 3.0]["rms_position_mm"].min(), rtol=1e-9
+    )  # the lowest end: a trial, not mean − sd
+    assert any("their range" in t.get_text() for t in ax.texts)
+    assert any("± 1 sd" in t.get_text() for t in fig.axes[1].texts)  # orientation: linear
