@@ -233,6 +233,7 @@ def control_config(
             process_position=process_m,
             process_angle=process_rad,
             heading_bias=math.radians(k.heading_bias_sigma_deg),
+            mobility=k.mobility_sigma,
             outlier_gate=k.outlier_gate_sigma,
         ),
     )

@@ -247,19 +247,29 @@ def test_latency_and_the_older_key_together_are_refused() -> None:
         _protocol(controller={"latency_ms": -1})
 
 
-@pytest.mark.parametrize("sigma_deg", [0.0, 0.5])
-def test_the_heading_bias_setting_reaches_the_proposed_methods_filter(sigma_deg: float) -> None:
-    """controller.kalman.heading_bias_sigma_deg builds the filter's bias state (4 states,
-    random walk σ in rad per tick); 0 keeps the pose-only filter."""
+@pytest.mark.parametrize(
+    ("sigma_deg", "mobility"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.003), (0.5, 0.003)]
+)
+def test_the_filter_state_settings_reach_the_proposed_methods_filter(
+    sigma_deg: float, mobility: float
+) -> None:
+    """controller.kalman.heading_bias_sigma_deg builds the filter's bias state (random walk σ
+    in rad per tick) and controller.kalman.mobility_sigma its mobility state (σ per tick):
+    a state each, 0 leaves it out (the pose-only filter when both are 0)."""
     from magrun.control.estimation import KalmanPoseFilter
     from magrun.trial import assemble
 
     protocol = load_protocol(
         ROOT / "protocols" / "spine.yaml",
-        [f"controller.kalman.heading_bias_sigma_deg={sigma_deg}"],
+        [
+            f"controller.kalman.heading_bias_sigma_deg={sigma_deg}",
+            f"controller.kalman.mobility_sigma={mobility}",
+        ],
     )
     parts = assemble(protocol.expand(quick=True)[0])
     estimator = parts.controller.estimator
     assert isinstance(estimator, KalmanPoseFilter)
     assert estimator.config.heading_bias == pytest.approx(math.radians(sigma_deg), rel=1e-12)
-    assert estimator.n == (4 if sigma_deg else 3)
+    assert estimator.config.mobility == mobility
+    assert estimator.n == 3 + (sigma_deg > 0) + (mobility > 0)
+    assert estimator.mobility == 1.0  # a new trial starts at the model's own step

@@ -44,8 +44,27 @@ gains that drift, b (rad per tick), as a random walk (σ = ``heading_bias`` per 
 so F is I with F[θ, b] = 1, H measures (x, y, θ). The heading measurements, which the camera
 gives to a degree or two, then estimate b frame by frame (a constant drift is followed with
 no lasting error: tests/test_estimation.py), and the heading between frames follows the
-robot instead of the model. The position has no such state: at σ = 2 mm and 3 Hz a velocity
-bias is not observable in the seconds over which it changes.
+robot instead of the model. An additive velocity bias for the position did not help ("Mobility"
+below says why); the position gets a scale instead.
+
+Mobility (optional)
+-------------------
+A robot whose force factor (moment over drag) is off, or that loses speed to friction,
+moves a fraction of the model's step every tick, and the filter, trusting the model between
+frames, puts it ahead of where it is: at 3 Hz, σ = 2 mm and a robot at 0.7 of the model's
+speed, by about a millimetre. An additive bias (a velocity the robot lacks) is cancelled by
+the controller: behind the path it pushes harder, its model moves the estimate on by as
+much as the bias holds it back, while the robot, short of force, does not follow. With
+``mobility`` > 0 the state gains the scale k of the model's step δ = prediction − x̂, a random
+walk (σ = ``mobility`` per tick) starting at 1::
+
+    state (x, y, …, k):   (x, y)⁻ = (x, y) + k δ,     kₖ = kₖ₋₁ + w,  w ~ N(0, σ_k²)
+
+linear in the state for the known δ, so F is I with F[(x, y), k] = δ this tick and the
+filter stays an exact Kalman filter. A harder push now moves the estimate k times as far.
+The measured positions estimate k (a constant scale is followed with no lasting error, its
+estimate unbiased under noise: tests/test_estimation.py); without motion it learns nothing
+and the filter is the plain one.
 
 Outlier gate (optional)
 -----------------------
@@ -59,7 +78,7 @@ a row the next one is taken whatever it says. ``rejected`` counts the rejections
 
 Defaults (:class:`KalmanConfig`): measurement σ 1 mm and 3°, process σ 0.3 mm and 2° per
 40 ms tick (the NMPC's one-step prediction error on the simulated plant is ~0.1 mm, plus the
-model mismatch the per-trial perturbations add), no heading bias.
+model mismatch the per-trial perturbations add), no heading bias, no mobility state.
 """
 
 from __future__ import annotations
@@ -93,6 +112,10 @@ class KalmanConfig:
     heading_bias: float = 0.0
     #: the heading bias's initial standard deviation, rad per tick
     initial_heading_bias: float = math.radians(0.4)
+    #: the mobility scale's random walk per tick (module doc; 0: no mobility state)
+    mobility: float = 0.0
+    #: the mobility scale's initial standard deviation (about its nominal 1)
+    initial_mobility: float = 0.2
     #: reject a measurement whose pose lies more than this many standard deviations of
     #: its innovation from the prediction (Mahalanobis; module doc; 0: take every one)
     outlier_gate: float = 0.0
@@ -124,26 +147,39 @@ class KalmanPoseFilter(Estimator):
             raise ValueError(f"heading_bias must be >= 0, got {c.heading_bias}")
         if not c.outlier_gate >= 0:
             raise ValueError(f"outlier_gate must be >= 0, got {c.outlier_gate}")
+        if not all(math.isfinite(v) and v >= 0 for v in (c.mobility, c.initial_mobility)):
+            raise ValueError(
+                f"mobility and initial_mobility must be >= 0, got {c.mobility}, "
+                f"{c.initial_mobility}"
+            )
         #: measurements the gate rejected, and the current run of them
         self.rejected = 0
         self._run = 0
         Q, R, P0 = c.matrices()
-        #: state size: the pose (3), and the heading bias (module doc) where it is on
-        self.n = 4 if c.heading_bias > 0 else 3
+        #: where the heading bias and the mobility scale (module doc) sit in the state
+        self._bias = 3 if c.heading_bias > 0 else None
+        self._mobility = (3 if self._bias is None else 4) if c.mobility > 0 else None
+        #: state size: the pose (3), the heading bias and the mobility where they are on
+        self.n = 3 + (self._bias is not None) + (self._mobility is not None)
         n = self.n
         self.Q, self.P0, self.R = np.zeros((n, n)), np.zeros((n, n)), R
         self.Q[:3, :3], self.P0[:3, :3] = Q, P0
         self.F, self.H = np.eye(n), np.eye(3, n)
-        if n == 4:
-            self.Q[3, 3] = c.heading_bias**2
-            self.P0[3, 3] = c.initial_heading_bias**2
-            self.F[2, 3] = 1.0  # θ⁻ = prediction + b
+        if (b := self._bias) is not None:
+            self.Q[b, b] = c.heading_bias**2
+            self.P0[b, b] = c.initial_heading_bias**2
+            self.F[2, b] = 1.0  # θ⁻ = prediction + b
+        if (m := self._mobility) is not None:
+            self.Q[m, m] = c.mobility**2
+            self.P0[m, m] = c.initial_mobility**2
         self.kf = KalmanFilter(dim_x=n, dim_z=3)
         self.reset(np.zeros(3))
 
     def reset(self, pose: FloatArray) -> None:
         self.kf.x = np.zeros((self.n, 1))
         self.kf.x[:3, 0] = np.asarray(pose, dtype=np.float64)
+        if self._mobility is not None:
+            self.kf.x[self._mobility, 0] = 1.0
         self.kf.F = self.F.copy()
         self.kf.H = self.H.copy()
         self.kf.Q = self.Q.copy()
@@ -152,7 +188,13 @@ class KalmanPoseFilter(Estimator):
 
     def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
         if prediction is not None:
-            self.kf.x[:3, 0] = np.asarray(prediction, dtype=np.float64)
+            p = np.asarray(prediction, dtype=np.float64)
+            if (m := self._mobility) is not None:
+                # x⁻ = x + k δ, δ = prediction − x the model's step (known): F[:2, k] = δ
+                self.kf.F[0, m], self.kf.F[1, m] = p[:2] - self.kf.x[:2, 0]
+                self.kf.x[2, 0] = p[2]
+            else:
+                self.kf.x[:3, 0] = p
             self.kf.predict()
         if measurement is not None:
             z = np.asarray(measurement, dtype=np.float64).copy()
@@ -197,7 +239,12 @@ class KalmanPoseFilter(Estimator):
     @property
     def heading_bias(self) -> float:
         """The estimated heading drift of the model, rad per tick (0 without the state)."""
-        return float(self.kf.x[3, 0]) if self.n == 4 else 0.0
+        return 0.0 if self._bias is None else float(self.kf.x[self._bias, 0])
+
+    @property
+    def mobility(self) -> float:
+        """The estimated mobility scale: the robot's step over the model's (1 without it)."""
+        return 1.0 if self._mobility is None else float(self.kf.x[self._mobility, 0])
 
     @property
     def covariance(self) -> FloatArray:
