@@ -217,11 +217,12 @@ class KalmanSettings(_Strict):
             "measured headings): its random walk per control tick, degrees; 0: no bias state."
         ),
     )
-    mobility_sigma: NonNegativeFloat = Field(
+    mobility_sigma: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = Field(
         0.0,
         description=(
             "The filter's mobility scale (the robot's step over the model's, learnt from the "
-            "measured positions): its random walk per control tick; 0: no mobility state."
+            "measured positions): its random walk per control tick, at most 1; 0: no "
+            "mobility state."
         ),
     )
     outlier_gate_sigma: NonNegativeFloat = Field(
