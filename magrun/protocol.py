@@ -288,6 +288,22 @@ class ControllerSettings(_Strict):
             "holds them tick by tick (docs: Control)."
         ),
     )
+    corrective_iterations: Annotated[int, Field(ge=0, le=50)] = Field(
+        2,
+        description=(
+            "The NMPC's real-time iteration: extra iterations, at most, in a tick whose step "
+            "left the field along the robot's moment short of the heading term's bound "
+            "(docs: Control)."
+        ),
+    )
+    corrective_step: Annotated[float, Field(gt=0, le=1)] = Field(
+        1.0,
+        description=(
+            "The corrective iterations' step, as a fraction of the QP's (1: full "
+            "Gauss-Newton steps; 0.5: half steps, which leave a cycle that full steps keep; "
+            "docs: Control)."
+        ),
+    )
     charge_compute_time: bool | None = Field(
         None,
         description=(

@@ -225,6 +225,8 @@ def control_config(
             field_error=settings.field_error_percent / 100,
             soft_constraints=settings.soft_constraints,
             field_heading_error=math.radians(settings.field_heading_error_deg),
+            corrective_iterations=settings.corrective_iterations,
+            corrective_step=settings.corrective_step,
         ),
         linear_mpc=LinearMPCConfig(horizon=settings.horizon),
         kalman=KalmanConfig(

@@ -316,3 +316,44 @@ def test_open_workspace_has_no_interval_to_condition_on() -> None:
     estimators are left as they are."""
     fs = FreeSpace.square(0.05, 0.016, 0.0028)
     assert fs.across(np.array([0.0, 0.0, 0.3])) is None
+
+
+def test_a_start_inside_the_corridor_margin_is_led_out_at_the_recovery_speed(
+    spine: FreeSpace, zernike_model
+) -> None:
+    """An estimate whose body is 0.4 mm inside the critical margin (where a noisy frame can put
+    it): stage k's half-plane is moved back by what is left of the intrusion after k stages at
+    ``corridor_recovery``, so at stage 0 it passes through the body's nearer end and, once
+    the intrusion is recovered, it is the plain half-plane again; the normals are unchanged.
+    A start outside the margin leaves every half-plane as it was."""
+    robot = load_robots()["drug_delivery"]
+    centre, a0 = np.array([-6e-3, 0.0]), math.radians(-40.0)
+    angles = a0 + np.linspace(0.0, 0.15, 21)
+    ref = np.column_stack([centre[0] + 13.4e-3 * np.cos(angles),
+                           centre[1] + 13.4e-3 * np.sin(angles), angles + math.pi / 2])  # fmt: skip
+    rate = 2e-3  # m/s
+    plain = NMPC(zernike_model, robot, NMPCConfig(corridor_recovery=0.0), spine)
+    led = NMPC(zernike_model, robot, NMPCConfig(corridor_recovery=rate), spine)
+    dt = led.config.dt
+    P0 = plain.corridor(ref[0], ref)  # (N+1, 1, 3); c in mm
+    n, c = P0[0, 0, :2], P0[0, 0, 2] * 1e-3
+
+    def nearer_end(state: np.ndarray) -> float:
+        axis = spine.half_axis * np.array([math.cos(state[2]), math.sin(state[2])])
+        return min(n @ (state[:2] + axis), n @ (state[:2] - axis))
+
+    # the reference's pose moved along the normal until its nearer end is 0.4 mm inside
+    inside = ref[0].copy()
+    inside[:2] += n * (c - 0.4e-3 - nearer_end(ref[0]))
+    assert c - nearer_end(inside) == pytest.approx(0.4e-3, abs=1e-12)
+    P, L = plain.corridor(inside, ref), led.corridor(inside, ref)
+    np.testing.assert_array_equal(L[:, :, :2], P[:, :, :2])
+    k = np.arange(len(P))
+    moved_back = np.maximum(0.0, 0.4e-3 - k * dt * rate) / 1e-3  # mm
+    np.testing.assert_allclose(L[:, 0, 2], P[:, 0, 2] - moved_back, rtol=0, atol=1e-9)
+    assert L[0, 0, 2] * 1e-3 == pytest.approx(nearer_end(inside), abs=1e-12)
+    assert np.array_equal(L[k * dt * rate >= 0.4e-3 + 1e-12], P[k * dt * rate >= 0.4e-3 + 1e-12])
+    # clear of the margin: nothing moves
+    outside = ref[0].copy()
+    outside[:2] += n * 0.2e-3
+    np.testing.assert_array_equal(led.corridor(outside, ref), plain.corridor(outside, ref))

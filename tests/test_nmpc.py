@@ -209,6 +209,60 @@ def test_rti_converges_to_the_ipopt_optimum(
         assert np.max(X[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
 
 
+def test_damped_corrective_iterations_leave_a_cycle_that_full_steps_keep(zernike_model) -> None:
+    """A tick of the spine phantom on the bench (the capsule at the channel's apex, its
+    estimate just moved 0.56 mm toward the critical wall by a frame), the NMPC as the phantom
+    protocols run it: full Gauss-Newton steps alternate between two plans whose fields run
+    against the moment (the heading residual at the first currents over 1 mT short, the
+    objective more than 50 times IPOPT's optimum, 10 ticks on), where half steps in the
+    corrective iterations reach IPOPT's optimum (objective within 10 %, first currents within
+    3 A, the heading within 0.2 mT of its bound)."""
+    from pathlib import Path
+
+    from magrun.freespace import FreeSpace
+    from magrun.phantom import load_phantom
+    from magrun.protocol import load_protocol
+    from magrun.robot import load_robots
+    from magrun.trial import build_scene
+
+    protocols = Path(__file__).parents[1] / "protocols"
+    ref = build_scene(load_protocol(protocols / "spine.yaml")).reference.pose(
+        7.02 + 0.04 * np.arange(21)
+    )
+    # the tick as it was recorded (m, rad, m/s, rad/s; A; the position covariance, m²)
+    state = np.array([6.740e-3, -0.949e-3, 1.5878, -0.121e-3, 3.071e-3, -0.0927])
+    previous = np.array([-0.88, -7.22, -0.91, -3.73, -4.26, -2.38, -5.96, -2.31])
+    covariance = np.array([[2.26e-7, 0.96e-7, 0.0], [0.96e-7, 1.30e-6, 0.0], [0.0, 0.0, 1e-4]])
+    phantom = load_phantom(protocols / "phantoms" / "spine_l3l4.yaml")
+    robot = load_robots()["drug_delivery"]
+    fs = FreeSpace(phantom.boundaries, phantom.critical, robot.length, robot.diameter)
+    base = NMPCConfig(field_error=0.05, soft_constraints="slack", corrective_iterations=6)
+
+    def run(cfg: NMPCConfig, ticks: int) -> tuple[float, float, np.ndarray]:
+        nmpc = NMPC(zernike_model, robot, cfg, fs)
+        if cfg.solver == "rti" and nmpc.backend.kernel is None:
+            pytest.skip("the slacks need the compiled kernel (no C compiler here)")
+        nmpc.observe_uncertainty(covariance)
+        for _ in range(ticks):
+            currents = nmpc.plan(state, ref, previous).currents
+        x0, u_prev, par = nmpc._start(state, ref, previous)
+        u = nmpc.backend.currents_plan()
+        assert u is not None
+        ocp = nmpc.problem
+        heading = float(ocp.heading_check(x0 / STATE_SCALE, u[0])) / math.sqrt(cfg.heading_weight)
+        return ocp.cost(x0 / STATE_SCALE, u_prev, par, u), heading, currents
+
+    J_ipopt, h_ipopt, I_ipopt = run(replace(base, solver="ipopt", compile=False), 1)
+    assert h_ipopt > -0.05  # mT: IPOPT holds the heading
+    J_full, h_full, _ = run(replace(base, corrective_step=1.0), 10)
+    J_half, h_half, I_half = run(replace(base, corrective_step=0.5), 10)
+    assert J_full > 50 * J_ipopt
+    assert h_full < -1.0
+    assert J_half == pytest.approx(J_ipopt, rel=0.1)
+    assert np.max(np.abs(I_half - I_ipopt)) < 3.0
+    assert h_half > -0.2
+
+
 class _FailingQP:
     """Stands in for the fast HPIPM preset: solves with it, then reports failure."""
 

@@ -247,6 +247,28 @@ def test_latency_and_the_older_key_together_are_refused() -> None:
         _protocol(controller={"latency_ms": -1})
 
 
+@pytest.mark.parametrize(("protocol_file", "iterations", "step"),
+                         [("spine.yaml", 6, 0.5), ("rate.yaml", 2, 1.0)])  # fmt: skip
+def test_the_corrective_iteration_settings_reach_the_nmpc(
+    protocol_file: str, iterations: int, step: float
+) -> None:
+    """controller.corrective_iterations and controller.corrective_step reach the proposed
+    method's NMPC as the protocol declares them (the phantom protocols: 6 half steps) or as
+    the defaults leave them (2 full steps, the open protocols); --set overrides them."""
+    from magrun.control.nmpc import NMPC
+    from magrun.trial import assemble
+
+    for overrides, want in (([], (iterations, step)),
+                            (["controller.corrective_iterations=3",
+                              "controller.corrective_step=0.25"], (3, 0.25))):  # fmt: skip
+        protocol = load_protocol(ROOT / "protocols" / protocol_file, overrides)
+        parts = assemble(protocol.expand(quick=True)[0])
+        planner = parts.controller.planner
+        assert isinstance(planner, NMPC)
+        assert (planner.config.corrective_iterations, planner.config.corrective_step) == want
+
+
+
 @pytest.mark.parametrize(
     ("sigma_deg", "mobility"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.003), (0.5, 0.003)]
 )
