@@ -268,7 +268,6 @@ def test_the_corrective_iteration_settings_reach_the_nmpc(
         assert (planner.config.corrective_iterations, planner.config.corrective_step) == want
 
 
-
 @pytest.mark.parametrize(
     ("sigma_deg", "mobility"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.003), (0.5, 0.003)]
 )
