@@ -213,7 +213,7 @@ def test_damped_corrective_iterations_leave_a_cycle_that_full_steps_keep(zernike
     """A tick of the spine phantom on the bench (the capsule at the channel's apex, its
     estimate just moved 0.56 mm toward the critical wall by a frame), the NMPC as the phantom
     protocols run it: full Gauss-Newton steps alternate between two plans whose fields run
-    against the moment (the heading residual at the first currents over 1 mT short, the
+    against the moment (the heading residual at the first currents over 0.5 mT short, the
     objective more than 50 times IPOPT's optimum, 10 ticks on), where half steps in the
     corrective iterations reach IPOPT's optimum (objective within 10 %, first currents within
     3 A, the heading within 0.2 mT of its bound)."""
@@ -257,7 +257,7 @@ def test_damped_corrective_iterations_leave_a_cycle_that_full_steps_keep(zernike
     J_full, h_full, _ = run(replace(base, corrective_step=1.0), 10)
     J_half, h_half, I_half = run(replace(base, corrective_step=0.5), 10)
     assert J_full > 50 * J_ipopt
-    assert h_full < -1.0
+    assert h_full < -0.5
     assert J_half == pytest.approx(J_ipopt, rel=0.1)
     assert np.max(np.abs(I_half - I_ipopt)) < 3.0
     assert h_half > -0.2

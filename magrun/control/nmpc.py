@@ -114,7 +114,7 @@ again, at most ``corrective_iterations`` times, each step damped to ``corrective
 the QP's. Full Gauss–Newton steps can cycle: on the bench spine, where the capsule crosses
 the channel's apex (x = 7.4 mm, y = 0), the currents that hold its heading while pushing it
 along change from one family to another, and full steps from the old plan alternated between
-two plans whose fields ran 4–7 mT against the moment on the next stages, at a cost 150 times
+two plans whose fields ran 4–7 mT against the moment on the next stages, at a cost 100–200 times
 IPOPT's optimum for the same tick (tests/test_nmpc.py); the capsule turned and touched the
 wall. Half steps reach IPOPT's currents within a few ticks. A tick whose heading holds takes
 its one full step, as before.
