@@ -1004,7 +1004,8 @@ class RTISolver(_Backend):
                 k.set_iterate(S0 + a * (S1 - S0), V0 + a * (V1 - V0))
                 if self.ocp.has_heading:
                     info = info.copy()
-                    info[3] = self._heading_at(x0, u_prev, V0[0] + a * (V1[0] - V0[0]))
+                    u0 = u_prev + V0[0] + a * (V1[0] - V0[0])  # the damped first currents
+                    info[3] = float(self.ocp.heading_check(x0, u0))
             if info[0] < cfg.step_tolerance:
                 break
             if (
@@ -1073,10 +1074,6 @@ class RTISolver(_Backend):
         self._z = z
         _, V = self._unpack(z)
         return SolveResult(True, u_prev + V[0], iterations, message)
-
-    def _heading_at(self, x0: FloatArray, u_prev: FloatArray, v0: FloatArray) -> float:
-        """The heading residual at the start state under the first currents u_prev + v0."""
-        return float(self.ocp.heading_check(x0, u_prev + v0))
 
     def _heading_sagged(self, x0: FloatArray, z: FloatArray, u_prev: FloatArray) -> bool:
         """Whether the first currents of plan ``z`` put the field along the moment at the
