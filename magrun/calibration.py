@@ -32,7 +32,7 @@ from magrun.yamlio import load_yaml_model
 class CoilGainsFile(BaseModel):
     """The calibration file's schema."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     model: str | None = Field(None, description="The field model the gains were fitted against.")
     coil_gains: Annotated[dict[str, PositiveFloat], Field(min_length=1)] = Field(

@@ -60,7 +60,7 @@ STATE_NAMES = ("x", "y", "theta", "vx", "vy", "omega")
 class RobotSpec(BaseModel):
     """One robot in ``robots.yaml`` (YAML units as suffixed; see the file for the derivation)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     description: str
     length_mm: float = Field(gt=0)

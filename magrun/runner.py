@@ -49,7 +49,15 @@ from magrun import interrupt
 from magrun.atomic import write_text
 from magrun.protocol import Protocol, Trial
 from magrun.realtime import cpu_split, loop_placement
-from magrun.trial import NO_DRIVER, HardwareSpec, RigSpec, RunError, coil_gains_of, system_of
+from magrun.trial import (
+    NO_DRIVER,
+    HardwareSpec,
+    RigSpec,
+    RunError,
+    coil_gains_of,
+    handshake,
+    system_of,
+)
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
@@ -475,17 +483,15 @@ def run_protocol(
     if isinstance(rig, HardwareSpec):
         if jobs != 1 or executor is not None:
             raise RunError("the hardware rig runs one trial at a time: --jobs 1, local executor")
-        from magrun.rigs.drivers import DriverError, load_driver
-
-        try:
-            load_driver(rig.driver)  # an unknown scheme or a malformed URL fails here
-        except DriverError as exc:
-            raise RunError(str(exc)) from exc
     elif rig not in RIGS:
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
     elif rig == "hardware":
         raise RunError(NO_DRIVER)
     coils = system_of(protocol)  # a bad system folder fails here (RunError), before any run
+    if isinstance(rig, HardwareSpec):
+        # an unknown scheme, a rig out of reach or one whose channels or limits are not the
+        # system's fails here (RunError), before a folder is made or a current sent
+        handshake(rig, coils, protocol.safety.stall_timeout_ms * 1e-3)
     if protocol.controller.coil_gains is not None:
         coil_gains_of(protocol, coils)  # its channels are the coils' (RunError)
     out = Path(out)

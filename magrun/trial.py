@@ -174,7 +174,9 @@ def make_rig(
 
         driver = load_driver(kind.driver)
         source = camera_source(kind.camera, driver)
-        return HardwareRig(driver, source, Camera(), robot, watchdog_s)
+        # the currents' limits are the system's, never the rig's (HardwareRig.connect)
+        system = coils if coils is not None else CoilSystem.load()
+        return HardwareRig(driver, source, Camera(), robot, system, watchdog_s)
     if kind == "hardware":
         raise RunError(NO_DRIVER)
     from magrun.rigs.sim import Perturbation, SimRig
@@ -190,6 +192,25 @@ def make_rig(
         camera=CameraConfig() if camera else None, coils=coils, plant_seed=sim.plant_seed,
         imperfections=sim.imperfections(), flow_path=flow_path,
     )  # fmt: skip
+
+
+def handshake(spec: HardwareSpec, coils: CoilSystem, watchdog_s: float) -> None:
+    """Open the rig's driver, check its channels and announced limits against ``coils``
+    (:func:`~magrun.rigs.hardware.agreed_limits`) and close it again: a rig that cannot be
+    reached, or that magrun will not drive, is refused (:class:`RunError`) before a run
+    folder is made or any current sent."""
+    from magrun.rigs.drivers import DriverError, load_driver
+    from magrun.rigs.hardware import agreed_limits
+
+    try:
+        driver = load_driver(spec.driver)
+        driver.open(watchdog_s)
+        try:
+            agreed_limits(driver, coils)
+        finally:
+            driver.close()
+    except DriverError as exc:
+        raise RunError(str(exc)) from exc
 
 
 # --------------------------------------------------------------------------------------------

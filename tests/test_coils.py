@@ -96,3 +96,18 @@ def test_bad_value_names_its_line_and_field(tmp_path) -> None:
         match=rf"coils\.yaml:{line}: coil_types\.medium\.turns: Input should be greater than 0",
     ):
         CoilSystem.load(path)
+
+
+@pytest.mark.parametrize("value", [".inf", ".nan", "-.inf"])
+def test_a_limit_that_is_not_finite_is_refused_with_its_line(tmp_path, value: str) -> None:
+    """An infinite current limit once passed validate, run and the emulator (which then
+    acknowledged 1e9 A): every number of a coil file must be finite."""
+    from importlib import resources
+
+    text = (resources.files("magrun.field") / "data" / "coils.yaml").read_text()
+    path = write(tmp_path, text.replace("max_current_a: 30.0", f"max_current_a: {value}"))
+    line = text.splitlines().index("max_current_a: 30.0") + 1
+    with pytest.raises(
+        CoilFileError, match=rf"coils\.yaml:{line}: max_current_a: Input should be a finite number"
+    ):
+        CoilSystem.load(path)

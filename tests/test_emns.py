@@ -319,8 +319,8 @@ def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
 
 def test_octomag_behind_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: Path) -> None:
     """An emulated OctoMag announces its 8 named channels and limits over the wire and
-    drives them; with the paper's rig's emulator behind an OctoMag protocol the trial
-    fails before it starts, naming both sets of coils."""
+    drives them; with the paper's rig's emulator behind an OctoMag protocol the run is
+    refused at the rig's handshake (before a folder is made), naming both sets of coils."""
     import sys
 
     sys.path.insert(0, str(ROOT / "tests"))
@@ -330,7 +330,7 @@ def test_octomag_behind_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: P
     from magrun.rigs.emulator import RigEmulator
     from magrun.rigs.sim import SimRig
     from magrun.runner import run_protocol
-    from magrun.trial import HardwareSpec
+    from magrun.trial import HardwareSpec, RunError
 
     octomag = CoilSystem.load(ROOT / "systems" / "octomag")
     with RigEmulator(SimRig.default(robot="micro_magnet", coils=octomag)) as emu:
@@ -346,14 +346,12 @@ def test_octomag_behind_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: P
     overrides = ("quick.methods=[baseline2]", "quick.duration_s=1")
     protocol = load_protocol(ROOT / "protocols" / "octomag.yaml", overrides)
     proc, url = _serve(tmp_path, "--no-camera")
-    try:
-        manifest = run_protocol(protocol, tmp_path / "out", quick=True, rig=HardwareSpec(url))
+    try:  # the paper's rig behind the wire: refused at the handshake, before any folder
+        with pytest.raises(RunError, match=r"the rig drives small_N.*Coil_0"):
+            run_protocol(protocol, tmp_path / "out", quick=True, rig=HardwareSpec(url))
     finally:
         _stop(proc)
-    (entry,) = manifest["trials"]
-    assert entry["status"] == "failed"
-    assert "the coil driver drives small_N" in entry["error"]
-    assert "Coil_0" in entry["error"]
+    assert not (tmp_path / "out").exists()
 
 
 def test_import_comsol_writes_a_system_folder_a_protocol_runs_on(tmp_path: Path) -> None:

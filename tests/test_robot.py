@@ -70,6 +70,11 @@ def test_bad_robots_file_names_file_line_and_field(tmp_path) -> None:
     )
     with pytest.raises(YamlModelError, match=r"robots.yaml:3: magnet.length_mm"):
         load_robots(bad)
+    # every number finite: an infinite mass once loaded and ran
+    bad.write_text(bad.read_text().replace("length_mm: -16", "length_mm: 16").replace(
+        "mass_g: 0.2", "mass_g: .inf"))  # fmt: skip
+    with pytest.raises(YamlModelError, match=r"robots.yaml:6: magnet.mass_g: .*finite number"):
+        load_robots(bad)
 
 
 def test_wrench_is_the_gradient_of_m_dot_b(zernike_model: ZernikeFieldModel, rng) -> None:

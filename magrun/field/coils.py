@@ -58,7 +58,7 @@ DISK_MARGIN = 1e-3
 class CoilTypeSpec(BaseModel):
     """Winding of one coil type in the base stack, whose axis is the +y axis (YAML units: mm)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     center_mm: float = Field(gt=0, description="Distance of the winding centre from the origin.")
     disk_radius_mm: float = Field(gt=0, description="Radius of the Zernike fitting disk.")
@@ -102,7 +102,7 @@ class CoilTypeSpec(BaseModel):
 
 
 class StackSpec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(pattern=r"^[A-Za-z0-9]+$")
     angle_deg: float
@@ -111,7 +111,7 @@ class StackSpec(BaseModel):
 class CoilSystemSpec(BaseModel):
     """The YAML document, validated (unknown keys are errors)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     workspace_half_width_mm: float = Field(gt=0)
     max_current_a: float = Field(gt=0)
@@ -142,7 +142,7 @@ class CoilSystemSpec(BaseModel):
 class ChannelLimits(BaseModel):
     """One channel's own limits (unset: the system's)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     max_current_a: float | None = Field(default=None, gt=0)
     max_slew_rate_a_per_s: float | None = Field(default=None, gt=0)
@@ -153,7 +153,7 @@ class MapSystemSpec(BaseModel):
     map in the system folder's ``reference_maps.npz`` (no symmetry assumed), and optionally
     a background field present at every current (YAML units: mm, A, A/s)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     kind: Literal["maps"] = Field(description="A system given by one map per channel.")
     name: str = Field(min_length=1, description="The system's name, for reports.")

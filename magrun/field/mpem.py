@@ -64,7 +64,9 @@ def _listed(
 class MpemSource(BaseModel):
     """One source of a coil: order 1 is a point dipole."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False
+    )
 
     position: tuple[float, float, float] = Field(alias="Source_Position")
     direction: tuple[float, float, float] = Field(alias="Source_Direction")
@@ -107,7 +109,9 @@ class MpemSource(BaseModel):
 class MpemCoil(BaseModel):
     """A coil: its sources by name (``Source_List``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False
+    )
 
     source_list: tuple[str, ...] = Field(alias="Source_List", min_length=1)
     sources: dict[str, MpemSource]
@@ -124,7 +128,9 @@ class MpemCoil(BaseModel):
 class MpemFile(BaseModel):
     """The document: ``Coil_List`` and one entry per listed coil; other keys are kept out."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False
+    )
 
     coil_list: tuple[str, ...] = Field(alias="Coil_List", min_length=1)
     coils: dict[str, MpemCoil]

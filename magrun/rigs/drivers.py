@@ -40,6 +40,28 @@ class DriverError(RuntimeError):
     """The driver cannot reach the amplifiers, or they refused a command."""
 
 
+class RigRefused(DriverError):
+    """The rig's handshake is not one magrun drives: a channel or a limit that contradicts the
+    protocol's coil system, or a limit that is not a finite positive number. Raised before
+    any current is sent."""
+
+
+def check_announced(
+    what: str, unit: str, limit: float | FloatArray, names: tuple[str, ...]
+) -> None:
+    """Refuse (:class:`RigRefused`) an announced limit that is not finite and positive on
+    every channel: a rig that announces ``nan``, ``inf``, 0 or a negative limit is not
+    trusted with a current."""
+    values = np.broadcast_to(np.asarray(limit, dtype=np.float64), (len(names),))
+    bad = ~(np.isfinite(values) & (values > 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise RigRefused(
+            f"the rig announces a {what} of {float(values[i])!r} {unit} on channel "
+            f"{names[i]}: not a finite positive limit; no current was sent"
+        )
+
+
 class CoilDriver(ABC):
     """The amplifiers of one rig.
 
@@ -121,10 +143,15 @@ class TcpLineDriver(CoilDriver):
             self.channel_names = tuple(hello[5].split(","))
             if len(self.channel_names) != n:
                 raise DriverError(f"the rig announced {n} channels but named {hello[5]!r}")
+            check_announced("current limit", "A", self.max_current, self.channel_names)
+            check_announced("slew limit", "A/s", self.max_slew_rate, self.channel_names)
             self.conn.request(f"WATCHDOG {watchdog_s * 1e3!r}", "OK")
         except (WireError, ValueError) as exc:
             self.close()
             raise DriverError(f"rig at {self.host}:{self.port}: {exc}") from exc
+        except DriverError as exc:
+            self.close()
+            raise type(exc)(f"rig at {self.host}:{self.port}: {exc}") from exc
 
     def _error(self, what: str, exc: Exception) -> DriverError:
         return DriverError(f"rig at {self.host}:{self.port}: {what}: {exc}")
@@ -134,6 +161,8 @@ class TcpLineDriver(CoilDriver):
 
     def send(self, currents: ArrayLike) -> FloatArray:
         values = np.asarray(currents, dtype=np.float64)
+        if not np.all(np.isfinite(values)):  # the rig layer clamps first; never on the wire
+            raise DriverError(f"refusing to send non-finite currents {format_floats(values)}")
         self._seq += 1
         try:
             fields = self.conn.request(f"SET {self._seq} {format_floats(values)}", "ACK")

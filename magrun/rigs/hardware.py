@@ -10,6 +10,12 @@
   Δt, so the loop runs at the control rate in real time; a tick that overran is counted.
 - **Latency**: from the start of a tick (the frame's capture) to the driver's acknowledgement
   of its currents; every tick's value is kept (:attr:`HardwareRig.latencies`) and recorded.
+- **Limits are magrun's**: the currents are clamped to the protocol's coil system's limits,
+  never to what the rig announces. On :meth:`~HardwareRig.connect` the rig's handshake is
+  checked against the system before any current is sent: its channels must be the system's,
+  and its announced limits finite, positive and no looser than the system's (a rig that
+  announces 300 A on a 30 A system, or ``nan``, is refused with
+  :class:`~magrun.rigs.drivers.RigRefused`); where the rig's are tighter, they are kept.
 - **Safety**: ``apply`` clamps like every rig (|I| ≤ max, slew over the time since the last
   command, non-finite → 0 A); the amplifier controller enforces its own limits and a stall
   watchdog (``watchdog_s``) whatever happens here. A driver that fails raises
@@ -20,13 +26,17 @@
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from magrun.rigs.base import FloatArray, Observation, Rig
 from magrun.rigs.cameras import CameraSource
-from magrun.rigs.drivers import CoilDriver
+from magrun.rigs.drivers import CoilDriver, RigRefused
+
+if TYPE_CHECKING:
+    from magrun.field.coils import CoilSystem
 from magrun.robot import RobotParams
 from magrun.safety import clamp_currents
 from magrun.tracking.camera import Camera
@@ -34,7 +44,8 @@ from magrun.tracking.tracker import Tracker
 
 
 class HardwareRig(Rig):
-    """Coils through ``driver``, the robot seen by ``source`` through ``camera``'s calibration."""
+    """Coils through ``driver`` within ``coils``' limits, the robot seen by ``source`` through
+    ``camera``'s calibration."""
 
     def __init__(
         self,
@@ -42,10 +53,12 @@ class HardwareRig(Rig):
         source: CameraSource,
         camera: Camera,
         robot: RobotParams,
+        coils: CoilSystem,
         watchdog_s: float = 0.1,
         tracker: Tracker | None = None,
     ) -> None:
         self.driver = driver
+        self.coils = coils
         self.source = source
         self.camera = camera
         self.nominal_robot = robot
@@ -67,9 +80,13 @@ class HardwareRig(Rig):
 
     def connect(self) -> None:
         self.driver.open(self.watchdog_s)
-        self.channel_names = self.driver.channel_names
-        self.max_current = self.driver.max_current
-        self.max_slew_rate = self.driver.max_slew_rate
+        try:
+            self.channel_names, self.max_current, self.max_slew_rate = agreed_limits(
+                self.driver, self.coils
+            )
+        except RigRefused:
+            self.driver.close()
+            raise
         try:
             self.source.open()
         except Exception:
@@ -140,3 +157,43 @@ class HardwareRig(Rig):
             "dropped_frames": self.dropped_frames,
             "lost_frames": self.lost_frames,
         }
+
+
+def agreed_limits(
+    driver: CoilDriver, coils: CoilSystem
+) -> tuple[tuple[str, ...], float | FloatArray, float | FloatArray]:
+    """The channels and limits an opened ``driver`` is driven under: ``coils``' (the protocol's
+    system), checked against what the rig announced. :class:`RigRefused` where the rig drives
+    other channels, or announces a limit that is not finite and positive or is looser than the
+    system's; where the rig's limit is tighter, the tighter one."""
+    names = tuple(driver.channel_names)
+    if names != coils.channel_names:
+        raise RigRefused(
+            f"the rig drives {', '.join(names)}, the protocol's system ({coils.name}) has "
+            f"{', '.join(coils.channel_names)}: set the protocol's `system:` to the rig's coil "
+            "system; no current was sent"
+        )
+    out: list[float | FloatArray] = []
+    for what, unit, ours, theirs in (
+        ("current limit", "A", coils.max_current, driver.max_current),
+        ("slew limit", "A/s", coils.max_slew_rate, driver.max_slew_rate),
+    ):
+        mine = np.broadcast_to(np.asarray(ours, dtype=np.float64), (len(names),))
+        rig = np.broadcast_to(np.asarray(theirs, dtype=np.float64), (len(names),))
+        bad = ~(np.isfinite(rig) & (rig > 0))
+        looser = ~bad & (rig > mine)
+        if bad.any() or looser.any():
+            i = int(np.argmax(bad | looser))
+            why = (
+                "not a finite positive limit"
+                if bad[i]
+                else f"looser than the system's {float(mine[i])!r} {unit} ({coils.name}); a "
+                "rig's own limits must be at least as tight as magrun's"
+            )
+            raise RigRefused(
+                f"the rig announces a {what} of {float(rig[i])!r} {unit} on channel "
+                f"{names[i]}: {why}; no current was sent"
+            )
+        agreed = np.minimum(mine, rig)
+        out.append(float(agreed[0]) if np.all(agreed == agreed[0]) else agreed.copy())
+    return names, out[0], out[1]
