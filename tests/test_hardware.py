@@ -281,3 +281,72 @@ def test_bench_rig_json() -> None:
     assert w["stalls"] == 2
     assert 50 <= w["reaction_median_ms"] <= w["reaction_max_ms"]
     assert 0 <= w["ramp_to_zero_median_ms"] <= w["ramp_to_zero_max_ms"]
+
+
+def _raw(emu: RigEmulator) -> LineConnection:
+    import socket
+
+    return LineConnection(socket.create_connection(emu.address), timeout=30.0)
+
+
+def _wait_for(condition, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    return condition()
+
+
+@pytest.mark.parametrize("value", ["0", "nan", "-5", "inf", "1e9", ""])
+def test_the_watchdog_cannot_be_switched_off(emulator, value: str) -> None:
+    """WATCHDOG 0, nan, -5 … were answered OK and left 10 A on after the client went quiet:
+    now ERR, and the watchdog keeps its timeout (armed from the first byte, 0.5 s)."""
+    conn = _raw(emulator)
+    try:
+        with pytest.raises(WireError, match="WATCHDOG needs one timeout"):
+            conn.request(f"WATCHDOG {value}".strip(), "OK")
+        assert emulator.watchdog_s == pytest.approx(0.5)
+        conn.request("SET 1 " + " ".join(["10"] * 8), "ACK")
+        assert _wait_for(lambda: emulator.state == "watchdog")  # silence: tripped
+        assert not np.any(emulator.rig.target)
+    finally:
+        conn.close()
+
+
+def test_the_watchdog_is_armed_before_any_watchdog_command(emulator) -> None:
+    conn = _raw(emulator)
+    try:
+        conn.request("SET 1 " + " ".join(["10"] * 8), "ACK")  # no HELLO, no WATCHDOG
+        assert _wait_for(lambda: emulator.state == "watchdog")
+        assert emulator.tripped_at == pytest.approx(emulator.last_set + 0.5, abs=1e-9)
+    finally:
+        conn.close()
+
+
+def test_malformed_requests_get_err_and_the_thread_serves_on(emulator) -> None:
+    """RESET with no pose once killed the serving thread; a non-ASCII line ended the
+    connection. Each gets ERR and the next request is served."""
+    conn = _raw(emulator)
+    try:
+        for bad in ("RESET", "RESET 1 2", "RESET nan 0 0", "SET", "WATCHDOG 1 2", "FLY"):
+            conn.send_line(bad)
+            assert conn.read_line().startswith("ERR "), bad
+        conn.send_bytes("RESET θ\n".encode())
+        assert conn.read_line().startswith("ERR")
+        assert conn.request("STATUS", "STATUS")[0] in ("running", "zero", "watchdog")
+    finally:
+        conn.close()
+
+
+def test_an_idle_client_does_not_hold_the_slot() -> None:
+    """A client that connects and sends nothing is let go after the idle timeout, so the
+    real controller can connect; its leaving trips the watchdog."""
+    with RigEmulator(SimRig.default(camera=None), idle_timeout_s=0.3) as emu:
+        idle = _raw(emu)
+        idle.request("SET 1 " + " ".join(["5"] * 8), "ACK")
+        try:
+            assert _wait_for(lambda: emu._client is None)
+            assert emu.state == "watchdog"
+            driver = _driver(emu)
+            driver.close()
+        finally:
+            idle.close()

@@ -11,7 +11,11 @@ coils::
 The plant is a :class:`~magrun.rigs.sim.SimRig` advanced in real time: a clock thread
 brings it up to the wall clock every ``step_s`` (2 ms) and enforces the watchdog there, so
 a stalled client is caught within ``step_s`` of the timeout whether or not it sends
-anything. One client at a time (a second one gets ``ERR busy``).
+anything. The watchdog is armed from a client's first byte (:data:`DEFAULT_WATCHDOG_S`) and
+cannot be switched off: ``WATCHDOG`` takes 0 < ms ≤ :data:`MAX_WATCHDOG_S` · 1000, anything else
+is answered ``ERR``. One client at a time (a second one gets ``ERR busy``); a client that
+sends nothing for ``idle_timeout_s`` is disconnected, which trips the watchdog. A malformed
+request is answered ``ERR``; it never ends the serving thread.
 
 Faults for tests: ``drop_every`` makes every n-th ``GRAB`` fail (``ERR frame dropped``), as
 a camera that misses frames; :meth:`RigEmulator.disconnect_client` breaks the connection.
@@ -20,6 +24,7 @@ a camera that misses frames; :meth:`RigEmulator.disconnect_client` breaks the co
 from __future__ import annotations
 
 import contextlib
+import math
 import socket
 import threading
 import time
@@ -31,11 +36,17 @@ from magrun.rigs.sim import SimRig
 from magrun.rigs.wire import (
     VERSION,
     LineConnection,
+    NotAscii,
     WireError,
     format_floats,
     limits_text,
     parse_floats,
 )
+
+#: the watchdog's timeout from a client's first byte until it sends ``WATCHDOG``, s
+DEFAULT_WATCHDOG_S = 0.5
+#: the longest timeout ``WATCHDOG`` may set, s
+MAX_WATCHDOG_S = 10.0
 
 
 class RigEmulator:
@@ -48,9 +59,11 @@ class RigEmulator:
         port: int = 0,
         step_s: float = 0.002,
         drop_every: int = 0,
+        idle_timeout_s: float = 30.0,
     ) -> None:
         self.rig = rig
         self.step_s = step_s
+        self.idle_timeout_s = idle_timeout_s
         self.drop_every = drop_every
         self._server = socket.create_server((host, port))
         self.address: tuple[str, int] = self._server.getsockname()[:2]
@@ -58,7 +71,7 @@ class RigEmulator:
         self._stop = threading.Event()
         self._client: LineConnection | None = None
         self.state = "running"
-        self.watchdog_s = 0.0
+        self.watchdog_s = DEFAULT_WATCHDOG_S
         self.last_set: float | None = None  # wall clock of the last SET
         self.tripped_at: float | None = None  # wall clock of the last watchdog trip
         self.grabs = 0
@@ -118,7 +131,6 @@ class RigEmulator:
         now = self.now()
         if (
             self.state == "running"
-            and self.watchdog_s > 0
             and self.last_set is not None
             and now - self.last_set > self.watchdog_s
         ):
@@ -150,14 +162,21 @@ class RigEmulator:
                 LineConnection(sock).send_line("ERR busy: one client at a time")
                 sock.close()
                 continue
-            self._client = LineConnection(sock, timeout=None)
+            # a client that sends nothing for idle_timeout_s is let go (it would hold the slot)
+            self._client = LineConnection(sock, timeout=self.idle_timeout_s)
+            with self._lock:  # armed from the first byte, with the default timeout
+                self.watchdog_s, self.last_set = DEFAULT_WATCHDOG_S, self.now()
             th = threading.Thread(target=self._serve, args=(self._client,), daemon=True)
             th.start()
 
     def _serve(self, conn: LineConnection) -> None:
         try:
             while not self._stop.is_set():
-                line = conn.read_line()
+                try:
+                    line = conn.read_line()
+                except NotAscii as exc:
+                    conn.send_line(f"ERR {exc}")
+                    continue
                 if not line:
                     continue
                 if line.split()[0] == "BYE":
@@ -165,10 +184,10 @@ class RigEmulator:
                     break
                 self._handle(conn, line)
         except WireError:
-            pass  # the client went away
+            pass  # the client went away, or sent nothing for idle_timeout_s
         finally:
             with self._lock:
-                if self.watchdog_s > 0 and self.state == "running":
+                if self.state == "running":
                     self._trip(self.now())  # no client, no commands: ramp down now
             conn.close()
             self._client = None
@@ -185,6 +204,8 @@ class RigEmulator:
                 reply = self._reply(cmd, args, t)
             except (ValueError, IndexError, WireError) as exc:  # a malformed request
                 reply = f"ERR {cmd}: {exc}"
+            except Exception as exc:  # never a dead thread: answer and go on
+                reply = f"ERR {cmd}: {type(exc).__name__}: {exc}"
         if isinstance(reply, tuple):  # a frame: header line, then the pixels
             header, pixels = reply
             conn.send_line(header)
@@ -201,7 +222,13 @@ class RigEmulator:
                 f"{limits_text(rig.max_slew_rate)} " + ",".join(rig.channel_names)
             )
         if cmd == "WATCHDOG":
-            self.watchdog_s = float(args[0]) * 1e-3
+            ms = float(args[0]) if len(args) == 1 else math.nan
+            if not 0 < ms <= MAX_WATCHDOG_S * 1e3:  # NaN too: the watchdog stays armed
+                return (
+                    f"ERR WATCHDOG needs one timeout, 0 < ms <= {MAX_WATCHDOG_S * 1e3:g}; "
+                    f"it stays at {self.watchdog_s * 1e3:g} ms"
+                )
+            self.watchdog_s = ms * 1e-3
             self.last_set = t
             return "OK"
         if cmd == "ARM":
@@ -229,7 +256,9 @@ class RigEmulator:
         if cmd == "STATUS":
             return f"STATUS {self.state} {t!r} {format_floats(rig.driven)}"
         if cmd == "RESET":
-            pose = parse_floats(args[:3], "RESET")
+            pose = parse_floats(args, "RESET")
+            if len(pose) != 3 or not np.all(np.isfinite(pose)):
+                return "ERR RESET needs a finite pose: x y theta (m, m, rad)"
             rig.reset(pose)
             self._sim_t = t
             self.state, self.last_set = "running", t

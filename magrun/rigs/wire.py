@@ -8,7 +8,7 @@ hardware or ``magrun rig-emulator``, which serves the simulated plant and camera
     HELLO 1                          OK magrun-rig 1 <n> <max A> <max slew A/s> <name,name,…>
                                      (a limit: one number, or n of them joined by commas,
                                       one per channel, where the channels' limits differ)
-    WATCHDOG <ms>                    OK                       arm the stall watchdog (0: off)
+    WATCHDOG <ms>                    OK                       set the stall watchdog's timeout
     SET <seq> <I1> … <In>            ACK <seq> <t> <I1> … <In>
     ZERO                             ACK 0 <t> <I1> … <In>    ramp every current to 0 A
     ARM                              OK                       accept SET again after a trip
@@ -24,10 +24,15 @@ toward (``STATUS``: driving now, on their way there at the slew limit) after the
 own limits (|I| ≤ max, slew ≤ max slew: a controller enforces
 them whatever it is sent). ``<state>`` is ``running``, ``zero`` (after ZERO) or ``watchdog``.
 
-The watchdog: once armed with ``WATCHDOG <ms>``, if no ``SET`` arrives for ``ms``
-milliseconds the controller ramps every current to zero at the slew limit, enters state
+The watchdog is armed from a connection's first byte with the controller's default timeout;
+``WATCHDOG <ms>`` sets another, a finite number of milliseconds above 0 and at most the
+controller's maximum (anything else is answered ``ERR`` and the timeout stays): it cannot be
+switched off. If no ``SET`` arrives for the timeout while currents are commanded (state
+``running``), the controller ramps every current to zero at the slew limit, enters state
 ``watchdog``, and answers every ``SET`` with ``ERR watchdog: …`` until ``ARM``. A closed
-connection trips it at once. That is what keeps the coils safe when magrun's loop stalls or
+connection trips it at once; so does a client that sends nothing for the controller's idle
+timeout, which is then disconnected (one client at a time: an idle one must not hold the
+slot). That is what keeps the coils safe when magrun's loop stalls or
 dies: nothing on magrun's side has to work for it.
 """
 
@@ -45,6 +50,10 @@ FloatArray = NDArray[np.float64]
 
 class WireError(ConnectionError):
     """The controller answered ``ERR``, answered nonsense, or the connection broke."""
+
+
+class NotAscii(WireError):
+    """A line arrived whole but is not ASCII: the connection itself is fine."""
 
 
 def format_floats(values: NDArray[np.float64] | list[float]) -> str:
@@ -86,8 +95,8 @@ class LineConnection:
         self._buf = bytearray()
 
     def send_line(self, line: str) -> None:
-        try:
-            self.sock.sendall(line.encode("ascii") + b"\n")
+        try:  # ASCII on the wire whatever the text (a message may quote a θ)
+            self.sock.sendall(line.encode("ascii", "replace") + b"\n")
         except OSError as exc:
             raise WireError(f"connection lost while sending: {exc}") from exc
 
@@ -119,7 +128,7 @@ class LineConnection:
         try:
             return line.decode("ascii").strip()
         except UnicodeDecodeError as exc:
-            raise WireError("a line that is not ASCII") from exc
+            raise NotAscii("a line that is not ASCII") from exc
 
     def read_bytes(self, n: int) -> bytes:
         while len(self._buf) < n:
