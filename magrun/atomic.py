@@ -34,3 +34,71 @@ def write_npz(path: str | Path, arrays: Mapping[str, NDArray[Any]]) -> None:
     with tmp.open("wb") as fh:
         np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]  # numpy stubs mistype **kwds
     tmp.replace(path)
+
+
+#: the advisory lock file inside a folder a command writes (a run's, a replay's)
+LOCK_NAME = ".magrun-lock"
+
+
+class FolderBusy(RuntimeError):
+    """Another process holds the folder's lock: one writer per folder."""
+
+
+class FolderLock:
+    """An advisory, exclusive lock on ``folder`` (``flock`` on ``folder/.magrun-lock``), so
+    that two magrun commands never write into one folder at once (two runs, a run and its
+    ``--resume`` or ``--overwrite``). Taken at once or not at all: :class:`FolderBusy` names
+    the holder's process id and command. The lock file holds them while the lock is held and
+    is removed on :meth:`release`; the operating system releases the lock of a process that
+    dies, so a crash never leaves the folder locked."""
+
+    def __init__(self, folder: str | Path) -> None:
+        import fcntl
+        import os
+        import sys
+
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.path = self.folder / LOCK_NAME
+        for _ in range(10):  # a holder that releases between our open and its unlink: again
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.read(fd, 4096).decode("utf-8", "replace").strip() or "unknown"
+                os.close(fd)
+                raise FolderBusy(
+                    f"{self.folder} is being written by another magrun ({holder}); wait for "
+                    "it to finish or choose another --out"
+                ) from None
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)  # the file was released and removed under us: take the new one
+        else:
+            raise FolderBusy(f"{self.folder}: could not take its lock")
+        self._fd: int | None = fd
+        os.ftruncate(fd, 0)
+        command = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv))
+        os.write(fd, f"pid {os.getpid()}: {command[:200]}\n".encode("utf-8", "replace"))
+
+    def release(self) -> None:
+        """Remove the lock file and release the lock (idempotent)."""
+        import os
+
+        if self._fd is None:
+            return
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from magrun import interrupt
-from magrun.atomic import write_text
+from magrun.atomic import LOCK_NAME, FolderBusy, FolderLock, write_text
 from magrun.protocol import Protocol, Trial
 from magrun.realtime import cpu_split, loop_placement
 from magrun.trial import (
@@ -496,9 +496,44 @@ def run_protocol(
         coil_gains_of(protocol, coils)  # its channels are the coils' (RunError)
     out = Path(out)
     folder = out / protocol.name
+    existed = folder.exists()
+    try:  # one writer per folder: a second run, --resume or --overwrite waits its turn
+        lock = FolderLock(folder)
+    except FolderBusy as exc:
+        raise RunError(str(exc)) from exc
+    except OSError as exc:
+        raise RunError(f"{folder}: cannot write there: {exc}") from exc
+    try:
+        return _run_locked(
+            protocol, folder, quick, seed, jobs, rig, executor, overwrite, protocol_file,
+            on_trial, progress, resume, view,
+        )  # fmt: skip
+    finally:
+        lock.release()
+        if not existed and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()  # refused before anything was written: leave no trace
+
+
+def _run_locked(
+    protocol: Protocol,
+    folder: Path,
+    quick: bool,
+    seed: int | None,
+    jobs: int,
+    rig: RigSpec,
+    executor: Executor | None,
+    overwrite: bool,
+    protocol_file: str | None,
+    on_trial: Callable[[dict[str, Any]], None] | None,
+    progress: ProgressFn | None,
+    resume: bool,
+    view: str,
+) -> dict[str, Any]:
+    """:func:`run_protocol`'s work in ``folder``, whose lock the caller holds."""
+    out = folder.parent
     path = folder / "manifest.json"
     previous: dict[str, Any] | None = None
-    if folder.exists() and any(folder.iterdir()):
+    if any(p.name != LOCK_NAME for p in folder.iterdir()):
         if resume:
             previous = _resumable(path, protocol, quick, seed)
         elif not overwrite:
@@ -507,7 +542,13 @@ def run_protocol(
                 "or --resume an interrupted run"
             )
         else:
-            shutil.rmtree(folder)
+            for item in folder.iterdir():  # all but the lock this run holds
+                if item.name == LOCK_NAME:
+                    continue
+                if item.is_dir() and not item.is_symlink():
+                    shutil.rmtree(item)
+                else:
+                    item.unlink()
     trials = protocol.expand(quick=quick, seed=seed)
     from magrun.recording import software_versions
 

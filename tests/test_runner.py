@@ -646,3 +646,57 @@ def test_view_without_a_display_points_to_web(
     assert result.exit_code == 2
     assert "no display" in result.output
     assert "--web" in result.output
+
+
+HOLD = """
+import sys, time
+from magrun.atomic import FolderLock
+with FolderLock(sys.argv[1]):
+    print("held", flush=True)
+    sys.stdin.read()  # until the test closes our stdin
+"""
+
+
+def test_one_writer_per_run_folder_across_processes(tmp_path: Path) -> None:
+    """Two runs into one folder once both exited 0 with both recordings unreadable; an
+    --overwrite during a live run deleted its files. With another process holding the
+    folder, a run, a --resume and an --overwrite are each refused (exit 2) and nothing in the
+    folder is touched; once that process is gone (the OS releases its lock, whatever way it
+    ended), the run goes ahead."""
+    out = tmp_path / "out"
+    folder = out / "tiny"
+    folder.mkdir(parents=True)
+    (folder / "trial-0.mcap").write_bytes(b"recorded")
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(folder)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout is not None
+        assert holder.stdout.readline().strip() == "held"
+        for extra in ([], ["--resume"], ["--overwrite"]):
+            result = CliRunner().invoke(cli, ["run", str(TINY), "--out", str(out), *extra])
+            assert result.exit_code == 2, (extra, result.output)
+            assert "being written by another magrun (pid" in result.output
+            assert "Traceback" not in result.output
+        assert (folder / "trial-0.mcap").read_bytes() == b"recorded"
+    finally:
+        holder.kill()  # a crash: its lock file stays, its lock does not
+        holder.wait(30)
+        for stream in (holder.stdin, holder.stdout):
+            if stream is not None:
+                stream.close()
+    assert (folder / ".magrun-lock").exists()
+    manifest = run_protocol(load_protocol(TINY), out, overwrite=True)
+    assert all(e["status"] == "ok" for e in manifest["trials"])
+    assert not (folder / ".magrun-lock").exists()
+
+
+def test_a_run_refused_for_a_busy_folder_writes_nothing(tmp_path: Path) -> None:
+    from magrun.atomic import FolderLock
+
+    folder = tmp_path / "out" / "tiny"
+    with FolderLock(folder), pytest.raises(RunError, match="another magrun"):
+        run_protocol(load_protocol(TINY), tmp_path / "out")
+    assert folder.is_dir()  # the holder's folder stays; the lock file went with the holder
+    assert list(folder.iterdir()) == []
