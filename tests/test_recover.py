@@ -102,6 +102,26 @@ def test_recover_never_overwrites_its_input(recording: Path) -> None:
         recover(recording, recording)
 
 
+def test_recover_never_replaces_an_existing_file_unasked(recording: Path, tmp_path: Path) -> None:
+    """`recover A B` once replaced a complete B: now exit 2 and B as it was, unless
+    --overwrite; an output named like the source (any case) is refused even then."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[: recording.stat().st_size // 2])
+    done = tmp_path / "complete.mcap"
+    done.write_bytes(b"a complete recording")
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(done)])
+    assert result.exit_code == 2
+    assert "pass --overwrite" in result.output
+    assert done.read_bytes() == b"a complete recording"
+    shadow = tmp_path / "CUT.MCAP"
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(shadow), "--overwrite"])
+    assert result.exit_code == 2
+    assert "would replace" in result.output
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(done), "--overwrite"])
+    assert result.exit_code == 0, result.output
+    assert len(_messages(done)) > 0
+
+
 def test_cli_recover_json(recording: Path, tmp_path: Path) -> None:
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(recording.read_bytes()[: recording.stat().st_size // 2])

@@ -186,7 +186,40 @@ def test_replay_refuses_other_files(recorded: dict[str, Path], tmp_path: Path) -
     same = recorded["proposed"]
     result = CliRunner().invoke(cli, ["replay", str(same), "--out", str(same)])
     assert result.exit_code == 2
-    assert "never over the recording" in result.output
+    assert "would replace" in result.output
+
+
+@pytest.mark.parametrize("resimulate", [False, True])
+def test_replay_never_replaces_a_recording_unasked(
+    recorded: dict[str, Path], tmp_path: Path, resimulate: bool
+) -> None:
+    """`--out OTHER/trial-0.mcap` once replaced another trial's .mcap and .rrd, and an output
+    named like the source in another case (`trial-0.MCAP`) its .rrd. Now: exit 2, every file
+    as it was; an existing output only with --overwrite; the source never."""
+    src = recorded["proposed"]
+    mode = ["--resimulate"] if resimulate else []
+    other = tmp_path / "other" / "trial-0.mcap"
+    other.parent.mkdir()
+    other.write_bytes(b"another trial")
+    other.with_suffix(".rrd").write_bytes(b"its rrd")
+    before = {p: p.read_bytes() for p in src.parent.iterdir() if p.is_file()}
+    for out in (other, src.with_name(src.stem.upper() + ".MCAP"), src.with_suffix(".MCAP")):
+        result = CliRunner().invoke(cli, ["replay", str(src), *mode, "--out", str(out)])
+        assert result.exit_code == 2, (out, result.output)
+        assert "Traceback" not in result.output
+    assert other.read_bytes() == b"another trial"
+    assert other.with_suffix(".rrd").read_bytes() == b"its rrd"
+    assert {p: p.read_bytes() for p in src.parent.iterdir() if p.is_file()} == before
+    if resimulate:
+        return  # a whole trial: the estimator's replay shows --overwrite below
+    fresh = tmp_path / "fresh.mcap"
+    assert CliRunner().invoke(cli, ["replay", str(src), "--out", str(fresh)]).exit_code == 0
+    again = CliRunner().invoke(cli, ["replay", str(src), "--out", str(fresh)])
+    assert again.exit_code == 2
+    assert "pass --overwrite" in again.output
+    args = ["replay", str(src), "--out", str(other), "--overwrite"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    assert other.read_bytes() != b"another trial"
 
 
 def test_set_overrides_a_protocol_and_names_itself_in_errors() -> None:
@@ -404,10 +437,10 @@ def test_resimulation_refuses_what_it_cannot_rerun(
     monkeypatch.setattr(resim, "read_ticks", from_hardware)
     src = str(recorded["proposed"])
     cases = [
-        (["--resimulate"], "only a simulated trial can be re-simulated"),
+        (["--resimulate", "--overwrite"], "only a simulated trial can be re-simulated"),
         (["--method", "baseline3"], "it needs --resimulate"),
         (["--resimulate", "--model", "zernike"], "takes no --model or --estimator"),
-        (["--resimulate", "--out", src], "never over it"),
+        (["--resimulate", "--out", src], "would replace"),
     ]
     for args, message in cases:
         result = CliRunner().invoke(cli, ["replay", src, *args])

@@ -17,6 +17,27 @@ class InputError(click.ClickException):
     exit_code = INPUT_ERROR
 
 
+def fresh_outputs(outputs: list[Path], inputs: list[Path], overwrite: bool) -> None:
+    """Refuse (:class:`InputError`) to write an output that is, or shadows, an input (the same
+    file, or the same name in any case with another extension: the input's ``.rrd`` beside it
+    is derived from that name), and one that exists unless ``overwrite``: no verb replaces a
+    recording unasked."""
+    for out in outputs:
+        for src in inputs:
+            same_place = out.parent.resolve() == src.parent.resolve()
+            if (same_place and out.stem.lower() == src.stem.lower()) or (
+                out.exists() and src.exists() and out.resolve() == src.resolve()
+            ):
+                raise InputError(
+                    f"{out}: would replace {src} or the files written beside it; choose "
+                    "another output"
+                )
+        if (out.exists() or out.is_symlink()) and not overwrite:
+            raise InputError(
+                f"{out} exists; pass --overwrite to replace it, or choose another output"
+            )
+
+
 def load_coils(path: Path | None) -> Any:
     """The coil system of a coil-system YAML (default: the paper's), or an InputError."""
     from magrun.field.coils import CoilFileError, CoilSystem

@@ -9,7 +9,7 @@ from typing import Any
 import click
 import numpy as np
 
-from magrun.cli.common import InputError
+from magrun.cli.common import InputError, fresh_outputs
 from magrun.cli.viewer import WEB_PORT, check_display, open_file
 
 
@@ -99,18 +99,21 @@ def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:
 @click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.argument("dst", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--rrd", is_flag=True, help="Also regenerate DST's .rrd from the recovered MCAP.")
+@click.option("--overwrite", is_flag=True, help="Replace DST (and its .rrd) if they exist.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON object.")
-def recover_cmd(src: Path, dst: Path, rrd: bool, as_json: bool) -> None:
+def recover_cmd(src: Path, dst: Path, rrd: bool, overwrite: bool, as_json: bool) -> None:
     """Rebuild a complete, indexed MCAP file DST from a truncated or damaged SRC.
 
     Every intact record is kept (a recorder killed mid-trial loses at most its open chunk,
-    about the last second); SRC is never modified. Prints how many messages were recovered
+    about the last second); SRC is never modified, and an existing DST is not replaced
+    without --overwrite. Prints how many messages were recovered
     and how many bytes were not. Exit status 2 when SRC is not an MCAP file.
     """
     from magrun.recover import recover
 
     if dst.suffix.lower() != ".mcap":
         raise InputError(f"{dst}: the recovered file must be an .mcap")
+    fresh_outputs([dst, *([dst.with_suffix(".rrd")] if rrd else [])], [src], overwrite)
     try:
         report = recover(src, dst)
     except ValueError as exc:

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from magrun.cli.common import SET_HELP, InputError
+from magrun.cli.common import SET_HELP, InputError, fresh_outputs
 from magrun.cli.viewer import LiveView, live_view, live_view_options
 from magrun.control import METHODS
 
@@ -32,6 +32,10 @@ _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
 @click.option(
     "--out", type=click.Path(dir_okay=False, path_type=Path),
     help="The output MCAP  [default: RECORDING's name + .LABEL.mcap, beside it].",
+)  # fmt: skip
+@click.option(
+    "--overwrite", is_flag=True,
+    help="Replace the output MCAP and its .rrd if they exist (never the recording itself).",
 )  # fmt: skip
 @click.option(
     "--resimulate", is_flag=True,
@@ -60,6 +64,7 @@ def replay(
     estimator: str | None,
     label: str | None,
     out: Path | None,
+    overwrite: bool,
     resimulate: bool,
     method: str | None,
     model: str | None,
@@ -107,7 +112,7 @@ def replay(
                 "--resimulate runs the whole trial: it takes no --model or --estimator"
             )
         with live_view(open_view, connect, web, web_port, f"{_again(recording)} --web") as lv:
-            _resimulate(recording, method, overrides, label or "resim", out, as_json, lv)
+            _resimulate(recording, method, overrides, label or "resim", out, overwrite, as_json, lv)
         return
     label = label or "replay"
     if model is not None:
@@ -123,6 +128,7 @@ def replay(
     out = out or recording.with_name(f"{recording.stem}.{label}.mcap")
     if out.suffix.lower() != ".mcap":
         raise InputError(f"--out {out}: the output must be an .mcap file")
+    fresh_outputs([out, out.with_suffix(".rrd")], [recording], overwrite)
     try:
         rec, result = replay_estimator(recording, overrides, estimator, label)
     except (ReplayError, RecordingReadError) as exc:
@@ -201,6 +207,7 @@ def _resimulate(
     overrides: tuple[str, ...],
     label: str,
     out: Path | None,
+    overwrite: bool,
     as_json: bool,
     lv: LiveView | None,
 ) -> None:
@@ -213,6 +220,7 @@ def _resimulate(
     out = out or recording.with_name(f"{recording.stem}.{label}.mcap")
     if out.suffix.lower() != ".mcap":
         raise InputError(f"--out {out}: the output must be an .mcap file")
+    fresh_outputs([out, out.with_suffix(".rrd")], [recording], overwrite)
     if not as_json:
         click.echo(f"{recording.name}: re-simulating ...", err=True)
     try:
