@@ -567,7 +567,7 @@ def _run_locked(
     index = {e["path"]: i for i, e in enumerate(manifest["trials"])}
     if previous is not None:
         for old in previous.get("trials", []):
-            done = old.get("status") in COMPLETE and (folder / str(old.get("mcap", ""))).is_file()
+            done = old.get("status") in COMPLETE and _intact(folder, old)
             if done and old.get("path") in index:
                 manifest["trials"][index[old["path"]]] = old
         kept = {e["path"] for e in manifest["trials"] if e.get("status") in COMPLETE}
@@ -584,6 +584,36 @@ def _run_locked(
         manifest["interrupted"] = _signal_name(interrupt.requested())
         write_manifest(path, manifest)
     return manifest
+
+
+#: the topic with one message per recorded tick, counted by :func:`_intact`
+STATUS_TOPIC = "/controller/status"
+
+
+def _intact(folder: Path, entry: dict[str, Any]) -> bool:
+    """Whether a finished trial's recording in ``folder`` is whole: its MCAP indexed (a
+    summary), with one controller status per recorded tick (``ticks`` − ``dropped_ticks`` of
+    its manifest entry), and its ``.rrd`` there. A truncated or tampered file is not, and
+    ``--resume`` runs its trial again."""
+    from mcap.reader import make_reader
+
+    relpath, rrd = str(entry.get("mcap", "")), str(entry.get("rrd", ""))
+    try:
+        mcap = (folder / relpath).resolve()
+        if not relpath or not mcap.is_relative_to(folder.resolve()) or not mcap.is_file():
+            return False
+        if rrd and not (folder / rrd).is_file():
+            return False
+        with mcap.open("rb") as fh:
+            summary = make_reader(fh).get_summary()
+        if summary is None or summary.statistics is None:
+            return False
+        counts = summary.statistics.channel_message_counts
+        status = sum(n for c, n in counts.items() if summary.channels[c].topic == STATUS_TOPIC)
+        recorded = int(entry.get("ticks", -1)) - int(entry.get("dropped_ticks") or 0)
+    except Exception:  # any damage (mcap raises several types): not intact
+        return False
+    return status == recorded
 
 
 def _resumable(path: Path, protocol: Protocol, quick: bool, seed: int | None) -> dict[str, Any]:

@@ -700,3 +700,23 @@ def test_a_run_refused_for_a_busy_folder_writes_nothing(tmp_path: Path) -> None:
         run_protocol(load_protocol(TINY), tmp_path / "out")
     assert folder.is_dir()  # the holder's folder stays; the lock file went with the holder
     assert list(folder.iterdir()) == []
+
+
+def test_resume_runs_a_trial_again_whose_recording_is_broken(tmp_path: Path) -> None:
+    """`--resume` kept a truncated `ok` trial as ok. Now each kept trial's MCAP must be
+    indexed with one status message per recorded tick: the truncated one and one whose file
+    is gone run again, the intact ones are kept untouched."""
+    out = tmp_path / "out"
+    first = run_protocol(load_protocol(TINY), out)
+    folder = out / "tiny"
+    cut, gone, *kept = first["trials"]
+    path = folder / cut["mcap"]
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    (folder / gone["mcap"]).unlink()
+    mtimes = {e["mcap"]: (folder / e["mcap"]).stat().st_mtime_ns for e in kept}
+    resumed = run_protocol(load_protocol(TINY), out, resume=True)
+    assert [e["status"] for e in resumed["trials"]] == ["ok"] * len(first["trials"])
+    for entry in (cut, gone):
+        counts, _, _ = read_mcap(folder / entry["mcap"])  # whole again
+        assert counts["/controller/status"] == entry["ticks"] - entry["dropped_ticks"]
+    assert {e["mcap"]: (folder / e["mcap"]).stat().st_mtime_ns for e in kept} == mtimes
