@@ -188,12 +188,11 @@ def identify(
 def robot_entry(result: Identification, name: str) -> dict[str, Any]:
     """A ``robots.yaml`` entry for the identified robot: the nominal one with the fitted
     moment (force factor); its drag and mass stay nominal (module doc)."""
-    import yaml
-
     from magrun.robot import RobotsFile, robots_path
+    from magrun.yamlio import load_yaml_model
 
     source = Path(result.robots_file) if result.robots_file else robots_path()
-    doc = RobotsFile.model_validate(yaml.safe_load(source.read_text(encoding="utf-8")))
+    doc = load_yaml_model(source, RobotsFile)  # read and checked when the trial ran
     spec = doc.root[result.robot].model_dump()
     spec["description"] = (
         f"{spec['description']}; identified from {len(result.train)} recording(s) "

@@ -111,3 +111,18 @@ def test_a_limit_that_is_not_finite_is_refused_with_its_line(tmp_path, value: st
         CoilFileError, match=rf"coils\.yaml:{line}: max_current_a: Input should be a finite number"
     ):
         CoilSystem.load(path)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "kind: maps\n" + "a: " + "[" * 5000 + "]" * 5000 + "\n",  # deeper than the parser goes
+        "max_current_a: " + "9" * 5000 + "\n",  # more digits than Python converts
+    ],
+)
+def test_a_hostile_system_file_is_refused_with_its_name(tmp_path, text: str) -> None:
+    """coils.py read a system's `kind` with an unguarded yaml.safe_load: a deep or a big-int
+    document ended in a traceback. Every YAML document now goes through one reader."""
+    path = write(tmp_path, text)
+    with pytest.raises(CoilFileError, match=r"coils\.yaml.*not valid YAML"):
+        CoilSystem.load(path)

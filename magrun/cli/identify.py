@@ -122,7 +122,10 @@ def identify_cmd(
     except (ReplayError, RecordingReadError) as exc:
         raise InputError(str(exc)) from exc
     robot_name = name or f"{result.robot}_identified"
-    entry = robot_entry(result, robot_name)
+    try:  # the robots file the recordings name: changed or gone since they were made
+        entry = robot_entry(result, robot_name)
+    except (ValueError, KeyError) as exc:
+        raise InputError(f"the recordings' robots file: {exc}") from exc
     header = [
         f"# {robot_name}: identified by magrun identify ({model} model, horizon {horizon})",
         f"# force factor (moment / drag vs nominal) {result.force_factor:.4f}",

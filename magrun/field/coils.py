@@ -210,12 +210,12 @@ class MapSystemSpec(BaseModel):
 def _kind(text: str) -> object:
     """The document's ``kind`` (None where it has none or is not YAML: the schema of the
     paper's kind then says what is wrong)."""
-    import yaml
+    from magrun.yamlio import YamlModelError, safe_yaml
 
     try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError:
-        return None
+        _, doc = safe_yaml(text, "")
+    except YamlModelError:
+        return None  # parse_yaml_model then names the file and line
     return doc.get("kind") if isinstance(doc, dict) else None
 
 
