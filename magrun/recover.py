@@ -18,6 +18,7 @@ The Rerun side is regenerated from the recovered MCAP (``magrun recover --rrd``:
 
 from __future__ import annotations
 
+import struct
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,7 +129,7 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
         records = reader.records
         try:
             first = next(records)
-        except (McapError, StopIteration, ValueError, EOFError) as exc:
+        except (McapError, StopIteration, ValueError, EOFError, struct.error) as exc:
             raise ValueError(f"{src}: not an MCAP file ({type(exc).__name__}: {exc})") from exc
         if not isinstance(first, Header):
             raise ValueError(f"{src}: not an MCAP file (no header record)")

@@ -531,17 +531,34 @@ def rrd_from_mcap(mcap: str | Path, rrd: str | Path, live_view: str = "") -> int
 
     Every pose, current and status message and every recorded image goes in. Recordings
     made before the ``view`` metadata record existed get a name from the ``trial`` record
-    and no pixel overlay on the camera view.
+    and no pixel overlay on the camera view. The ``.rrd`` is written beside ``rrd`` and
+    renamed over it when complete: a damaged recording leaves no partial file, and an
+    existing ``rrd`` stays as it was.
 
     Raises
     ------
     ValueError
-        ``mcap`` is not a readable, indexed magrun recording.
+        ``mcap`` is not a readable, indexed magrun recording, or is damaged inside (a bit
+        flipped in a chunk or a schema: the decoders' errors, named).
     """
+    mcap, rrd = Path(mcap), Path(rrd)
+    part = rrd.with_name(f".{rrd.stem}.part{rrd.suffix}")
+    try:
+        ticks = _rrd_from_mcap(mcap, part, live_view)
+    except Exception as exc:  # zstd, protobuf, mcap, struct and codecs raise for damage
+        part.unlink(missing_ok=True)
+        if isinstance(exc, ValueError) and str(exc).startswith(str(mcap)):
+            raise  # ours: says what is wrong with the file
+        raise ValueError(f"{mcap}: damaged, cannot be read ({type(exc).__name__}: {exc})") from exc
+    part.replace(rrd)
+    return ticks
+
+
+def _rrd_from_mcap(mcap: Path, rrd: Path, live_view: str) -> int:
+    """:func:`rrd_from_mcap`'s work, into ``rrd``."""
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    mcap = Path(mcap)
     with mcap.open("rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])
         if reader.get_summary() is None:

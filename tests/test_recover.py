@@ -145,3 +145,16 @@ def test_sigkill_loses_at_most_the_last_second() -> None:
         assert run["ticks_logged"] >= 1.5 / DT - 2
         assert 0 <= run["trial_s_lost"] <= 1.0 + 3 * DT
         assert run["ticks_recovered"] >= run["ticks_logged"] - round((1.0 + 3 * DT) / DT)
+
+
+@pytest.mark.parametrize("size", [12, 16, 20, 24])
+def test_a_file_cut_inside_its_header_is_refused_with_exit_2(
+    recording: Path, tmp_path: Path, size: int
+) -> None:
+    """12-24 bytes of a recording (the magic and part of the header) ended in struct.error."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[:size])
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(tmp_path / "out.mcap")])
+    assert result.exit_code == 2, result.output
+    assert "not an MCAP file" in result.output
+    assert not (tmp_path / "out.mcap").exists()

@@ -720,3 +720,31 @@ def test_resume_runs_a_trial_again_whose_recording_is_broken(tmp_path: Path) -> 
         counts, _, _ = read_mcap(folder / entry["mcap"])  # whole again
         assert counts["/controller/status"] == entry["ticks"] - entry["dropped_ticks"]
     assert {e["mcap"]: (folder / e["mcap"]).stat().st_mtime_ns for e in kept} == mtimes
+
+
+def test_view_save_of_a_damaged_recording_exits_2_and_writes_nothing(
+    tiny_run: Any, tmp_path: Path
+) -> None:
+    """Bits flipped in a recording (40 each, 12 seeds) ended `view --save` in ZstdError,
+    protobuf's DecodeError or McapError tracebacks. Now each either converts or exits 2
+    naming the damage, and a failed one leaves no .rrd, partial or otherwise."""
+    import random
+
+    out, manifest = tiny_run
+    data = (out / "tiny" / manifest["trials"][0]["mcap"]).read_bytes()
+    codes = []
+    for seed in range(12):
+        rng, damaged = random.Random(seed), bytearray(data)
+        for _ in range(40):
+            damaged[rng.randrange(100, len(damaged))] ^= 1 << rng.randrange(8)
+        src, target = tmp_path / f"flip{seed}.mcap", tmp_path / f"flip{seed}.rrd"
+        src.write_bytes(bytes(damaged))
+        result = CliRunner().invoke(cli, ["view", str(src), "--save", str(target)])
+        assert result.exit_code in (0, 2), (seed, result.output)
+        assert "Traceback" not in result.output
+        if result.exit_code == 2:
+            assert str(src) in result.output  # the file named, with what is wrong
+            assert not target.exists()
+        codes.append(result.exit_code)
+    assert 2 in codes  # the damage was seen at least once
+    assert not list(tmp_path.glob(".*part*"))
