@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, RootModel
 
-from magrun.yamlio import YamlModelError, parse_yaml_model
+from magrun.yamlio import parse_yaml_model, read_text_file
 
 FloatArray = NDArray[np.float64]
 Expr = Any
@@ -165,11 +165,7 @@ def load_robots(path: str | Path | None = None) -> dict[str, RobotParams]:
         If the file does not match the schema; the message names file, line and field.
     """
     path = Path(path) if path is not None else robots_path()
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise YamlModelError([f"{path}: cannot read robots file: {exc}"]) from exc
-    doc = parse_yaml_model(text, RobotsFile, str(path))
+    doc = parse_yaml_model(read_text_file(path), RobotsFile, str(path))
     return {name: RobotParams.from_spec(name, spec) for name, spec in doc.root.items()}
 
 

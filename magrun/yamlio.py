@@ -11,6 +11,8 @@ location as a path of keys and indices. Walking the path through the node tree g
 from __future__ import annotations
 
 import difflib
+import re
+import stat
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -61,9 +63,19 @@ def _locate(
     return line, tuple(shown)
 
 
+#: what a key of a magrun document looks like; anything else is not echoed in an error (a file
+#: that is not magrun's, say /etc/shadow named as a robots file, would be printed line by line)
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]{0,63}")
+
+
+def _shown(part: str) -> str:
+    return part if _KEY.fullmatch(part) else "(a key that is not a name)"
+
+
 def _field_name(loc: tuple[int | str, ...]) -> str:
     out = ""
     for part in loc:
+        part = part if isinstance(part, int) else _shown(part)
         out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
     return out or "(document)"
 
@@ -239,8 +251,20 @@ def load_yaml_model(
     overrides: Sequence[str] = (),
 ) -> M:
     """Read and validate a YAML file; every problem raises :class:`YamlModelError`."""
+    return parse_yaml_model(read_text_file(path), model, str(path), context, overrides)
+
+
+def read_text_file(path: str | Path, limit: int = MAX_YAML_CHARS) -> str:
+    """The UTF-8 text of a regular file of at most ``limit`` characters, or a
+    :class:`YamlModelError` naming it: a FIFO, a device or a folder is refused before it is
+    opened (reading a FIFO waits for a writer for ever), and the read is bounded."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        if not stat.S_ISREG(Path(path).stat().st_mode):
+            raise YamlModelError([f"{path}: cannot read: not a regular file"])
+        with Path(path).open(encoding="utf-8") as fh:
+            text = fh.read(limit + 1)
     except (OSError, UnicodeDecodeError) as exc:
         raise YamlModelError([f"{path}: cannot read: {exc}"]) from exc
-    return parse_yaml_model(text, model, str(path), context, overrides)
+    if len(text) > limit:
+        raise YamlModelError([f"{path}: not read: more than the {limit:,} characters allowed"])
+    return text

@@ -21,6 +21,7 @@ from magrun.scene import out_and_back
 from magrun.yamlio import YamlModelError
 
 ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "tests" / "data" / "protocols" / "tiny.yaml"
 PROTOCOLS = sorted((ROOT / "protocols").glob("*.yaml"))
 BAD = sorted((ROOT / "tests" / "data" / "bad_protocols").glob("*.yaml"))
 PAPER = {"prediction", "rate", "noise", "rate_under_noise", "spine"}
@@ -294,3 +295,37 @@ def test_the_filter_state_settings_reach_the_proposed_methods_filter(
     assert estimator.config.mobility == mobility
     assert estimator.n == 3 + (sigma_deg > 0) + (mobility > 0)
     assert estimator.mobility == 1.0  # a new trial starts at the model's own step
+
+
+def test_a_fifo_is_refused_before_it_is_opened(tmp_path: Path) -> None:
+    """A FIFO named as a protocol or a robots file made magrun wait for a writer for ever."""
+    import os
+
+    from click.testing import CliRunner
+
+    from magrun.cli import cli
+
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    run = ["run", str(TINY), "--set", f"robots_file={fifo}", "--out", str(tmp_path)]
+    for args in (["validate", str(fifo)], run):
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 2, result.output
+        assert "not a regular file" in result.output
+
+
+def test_a_file_that_is_not_magrun_s_is_not_echoed_in_the_error(tmp_path: Path) -> None:
+    """A protocol naming a system file (say /etc/shadow) as its robots file printed that file
+    line by line in the error: the keys that are not names are not shown, their lines are."""
+    from click.testing import CliRunner
+
+    from magrun.cli import cli
+
+    secret = tmp_path / "shadow"
+    secret.write_text("root:$6$s3cr3t:19000:0:99999:7:::\ndaemon:*:19000:0:99999:7:::\n")
+    args = ["run", str(TINY), "--set", f"robots_file={secret}", "--out", str(tmp_path / "o")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert f"{secret}:1:" in result.output
+    assert "s3cr3t" not in result.output
+    assert "daemon" not in result.output

@@ -37,7 +37,7 @@ from pydantic import (
     model_validator,
 )
 
-from magrun.yamlio import YamlModelError, parse_yaml_model
+from magrun.yamlio import YamlModelError, parse_yaml_model, read_text_file
 
 FloatArray = NDArray[np.float64]
 
@@ -210,7 +210,7 @@ class MapSystemSpec(BaseModel):
 def _kind(text: str) -> object:
     """The document's ``kind`` (None where it has none or is not YAML: the schema of the
     paper's kind then says what is wrong)."""
-    from magrun.yamlio import YamlModelError, safe_yaml
+    from magrun.yamlio import safe_yaml
 
     try:
         _, doc = safe_yaml(text, "")
@@ -283,9 +283,9 @@ class CoilSystem:
             if path.is_dir():
                 folder, path = path, path / SYSTEM_FILE
             try:
-                text, source = path.read_text(encoding="utf-8"), str(path)
-            except (OSError, UnicodeDecodeError) as exc:
-                raise CoilFileError(f"{path}: cannot read coil file: {exc}") from exc
+                text, source = read_text_file(path), str(path)
+            except YamlModelError as exc:
+                raise CoilFileError(str(exc)) from exc
         kind: type[CoilSystemSpec] | type[MapSystemSpec] = (
             MapSystemSpec if _kind(text) == "maps" else CoilSystemSpec
         )

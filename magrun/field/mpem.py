@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from magrun.yamlio import YamlModelError, parse_yaml_model
+from magrun.yamlio import YamlModelError, parse_yaml_model, read_text_file
 
 FloatArray = NDArray[np.float64]
 
@@ -171,11 +171,7 @@ class MpemModel:
     def load(cls, path: str | Path) -> Self:
         """Read and check a calibration (:class:`MpemError` naming the file and line)."""
         try:
-            text = Path(path).read_text(encoding="utf-8")
-        except (OSError, UnicodeDecodeError) as exc:
-            raise MpemError(f"{path}: cannot read: {exc}") from exc
-        try:
-            doc = parse_yaml_model(text, MpemFile, str(path))
+            doc = parse_yaml_model(read_text_file(path), MpemFile, str(path))
         except YamlModelError as exc:
             raise MpemError(str(exc)) from exc
         if not doc.driven:
