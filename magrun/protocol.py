@@ -153,12 +153,19 @@ class PhantomWorkspace(_Strict):
         return _checked_file(value, info, load_phantom)
 
 
+#: a trajectory's speed, mm/s: a robot slower than 1 µm/s would take days for a path; one
+#: faster than 1 m/s leaves any coil system's workspace within a tick
+Speed = Annotated[float, Field(ge=1e-3, le=1000)]
+#: the longest time a trajectory may hold or a trial may last, s (a day)
+MAX_TRIAL_S = 86_400.0
+
+
 class SCurve(_Strict):
     """The paper's S-shaped path in a square (Section III-A), heading along the path."""
 
     kind: Literal["s_curve"]
-    size_mm: PositiveFloat = 43.0
-    speed_mm_s: PositiveFloat = 3.0
+    size_mm: Annotated[float, Field(gt=0, le=1000)] = 43.0
+    speed_mm_s: Speed = 3.0
 
 
 class OutAndBack(_Strict):
@@ -169,9 +176,13 @@ class OutAndBack(_Strict):
 
     kind: Literal["out_and_back"]
     path: Literal["phantom"] | Annotated[list[tuple[float, float]], Field(min_length=2)]
-    speed_mm_s: PositiveFloat = 3.0
-    hold_s: NonNegativeFloat = Field(5.0, description="Station-keeping at the far end, s.")
-    flip_s: PositiveFloat = Field(3.0, description="Time to turn round (180°) in place, s.")
+    speed_mm_s: Speed = 3.0
+    hold_s: Annotated[float, Field(ge=0, le=MAX_TRIAL_S)] = Field(
+        5.0, description="Station-keeping at the far end, s."
+    )
+    flip_s: Annotated[float, Field(gt=0, le=MAX_TRIAL_S)] = Field(
+        3.0, description="Time to turn round (180°) in place, s."
+    )
 
 
 Workspace = Annotated[OpenWorkspace | PhantomWorkspace, Field(discriminator="kind")]
@@ -680,7 +691,7 @@ class Protocol(_Strict):
     recording: RecordingSettings = RecordingSettings()
     safety: SafetySettings = SafetySettings()
     simulation: SimulationSettings = SimulationSettings()
-    duration_s: PositiveFloat | None = Field(
+    duration_s: Annotated[float, Field(gt=0, le=MAX_TRIAL_S)] | None = Field(
         None, description="Trial length, s; default: the trajectory plus 1 s of hold."
     )
     quick: QuickSettings = QuickSettings()
