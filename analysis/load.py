@@ -328,10 +328,17 @@ def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]
         try:
             manifest = json.loads(mf.read_text())
             entries = manifest["trials"]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise RecordingError(mf, f"not a readable manifest ({exc})") from exc
-        for entry in entries:
-            p = (mf.parent / entry["mcap"]).resolve()
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
+            raise RecordingError(mf, f"not a readable manifest ({type(exc).__name__})") from exc
+        if not isinstance(entries, list):
+            raise RecordingError(mf, "not a readable manifest (`trials` is not a list)")
+        for i, entry in enumerate(entries):
+            relpath = entry.get("mcap") if isinstance(entry, dict) else None
+            if not isinstance(relpath, str) or not relpath:
+                raise RecordingError(mf, f"trials[{i}]: no `mcap` path")
+            p = (mf.parent / relpath).resolve()
+            if not p.is_relative_to(mf.parent.resolve()):
+                raise RecordingError(mf, f"trials[{i}]: `mcap` points outside the run's folder")
             listed.add(p)
             found.append(
                 (p, {**entry, "protocol": entry.get("protocol", manifest.get("protocol"))})

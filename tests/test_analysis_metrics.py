@@ -281,3 +281,32 @@ def test_coil_effort_by_hand() -> None:
     per_coil = coil_effort(frame, [5.0, 100.0])  # limits per coil: a is at its limit 3 samples
     assert per_coil["time_at_limit_s"] == pytest.approx(0.3)
     assert np.isnan(coil_effort(frame, None)["time_at_limit_s"])  # no limits recorded
+
+
+@pytest.mark.parametrize(
+    "manifest",
+    [
+        '{"trials": [1, 2]}',
+        '{"trials": [{"path": "a"}]}',
+        '{"trials": [{"mcap": 5}]}',
+        '{"trials": {"mcap": "a.mcap"}}',
+        '{"trials": [{"mcap": "../../outside.mcap"}]}',
+        "[" * 100_000 + "]" * 100_000,
+        "not json",
+    ],
+)
+def test_a_tampered_manifest_is_refused_naming_it(tmp_path: Path, manifest: str) -> None:
+    """A manifest whose entries were not what `magrun run` writes ended `figures` in a
+    KeyError or TypeError traceback; one 100,000 deep in RecursionError. Now exit 2, named."""
+    from click.testing import CliRunner
+
+    from magrun.cli import cli
+
+    run = tmp_path / "rec" / "proto"
+    run.mkdir(parents=True)
+    (run / "manifest.json").write_text(manifest)
+    args = ["figures", str(tmp_path / "rec"), "--out", str(tmp_path / "f")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert "manifest.json" in result.output
+    assert "Traceback" not in result.output
