@@ -23,6 +23,10 @@ from pydantic import BaseModel, ValidationError
 
 M = TypeVar("M", bound=BaseModel)
 
+#: problems listed for one document: locating each walks the document, so a file of 50,000
+#: unknown keys would take minutes; the rest are counted
+MAX_PROBLEMS = 50
+
 
 class YamlModelError(ValueError):
     """A YAML document that is unreadable or invalid; one ``file:line: field: message`` per line."""
@@ -181,7 +185,8 @@ def validate_data(
         raise YamlModelError([f"{source}: nested too deeply to validate"]) from exc
     except ValidationError as exc:
         problems = []
-        for err in exc.errors():
+        errors = exc.errors()
+        for err in errors[:MAX_PROBLEMS]:  # each is located by a walk of the document
             loc = tuple(err["loc"])
             by = _override_of(loc, parsed)
             if by is not None:
@@ -190,6 +195,8 @@ def validate_data(
             line, shown = _locate(root, loc)
             where = f"{source}:{line}" if root is not None else source
             problems.append(f"{where}: {_field_name(shown)}: {_message(model, err)}")
+        if len(errors) > MAX_PROBLEMS:
+            problems.append(f"{source}: and {len(errors) - MAX_PROBLEMS:,} more problems")
         raise YamlModelError(problems) from exc
 
 

@@ -329,3 +329,19 @@ def test_a_file_that_is_not_magrun_s_is_not_echoed_in_the_error(tmp_path: Path) 
     assert f"{secret}:1:" in result.output
     assert "s3cr3t" not in result.output
     assert "daemon" not in result.output
+
+
+def test_thousands_of_unknown_keys_are_counted_not_each_located(tmp_path: Path) -> None:
+    """Each problem's line is found by a walk of the document: 50,000 unknown keys took
+    minutes. The first MAX_PROBLEMS are listed with their lines, the rest counted."""
+    from magrun.yamlio import MAX_PROBLEMS, YamlModelError
+
+    path = tmp_path / "many.yaml"
+    keys = "".join(f"k{i}: 1\n" for i in range(5000))
+    path.write_text("name: bad\ntrajectory: {kind: s_curve}\nmethods: [proposed]\n" + keys)
+    with pytest.raises(YamlModelError) as info:
+        load_protocol(path)
+    problems = info.value.problems
+    assert len(problems) == MAX_PROBLEMS + 1
+    assert problems[0] == f"{path}:4: k0: Extra inputs are not permitted"
+    assert problems[-1] == f"{path}: and {5000 - MAX_PROBLEMS:,} more problems"
