@@ -33,7 +33,7 @@ from numpy.typing import ArrayLike
 
 from magrun.rigs.base import FloatArray, Observation, Rig
 from magrun.rigs.cameras import CameraSource
-from magrun.rigs.drivers import CoilDriver, RigRefused
+from magrun.rigs.drivers import CoilDriver, RigRefused, check_announced
 
 if TYPE_CHECKING:
     from magrun.field.coils import CoilSystem
@@ -178,21 +178,17 @@ def agreed_limits(
         ("current limit", "A", coils.max_current, driver.max_current),
         ("slew limit", "A/s", coils.max_slew_rate, driver.max_slew_rate),
     ):
+        check_announced(what, unit, theirs, names)  # a plugin driver's too: finite, > 0
         mine = np.broadcast_to(np.asarray(ours, dtype=np.float64), (len(names),))
         rig = np.broadcast_to(np.asarray(theirs, dtype=np.float64), (len(names),))
-        bad = ~(np.isfinite(rig) & (rig > 0))
-        looser = ~bad & (rig > mine)
-        if bad.any() or looser.any():
-            i = int(np.argmax(bad | looser))
-            why = (
-                "not a finite positive limit"
-                if bad[i]
-                else f"looser than the system's {float(mine[i])!r} {unit} ({coils.name}); a "
-                "rig's own limits must be at least as tight as magrun's"
-            )
+        looser = rig > mine
+        if looser.any():
+            i = int(np.argmax(looser))
             raise RigRefused(
                 f"the rig announces a {what} of {float(rig[i])!r} {unit} on channel "
-                f"{names[i]}: {why}; no current was sent"
+                f"{names[i]}: looser than the system's {float(mine[i])!r} {unit} "
+                f"({coils.name}); a rig's own limits must be at least as tight as magrun's; "
+                "no current was sent"
             )
         agreed = np.minimum(mine, rig)
         out.append(float(agreed[0]) if np.all(agreed == agreed[0]) else agreed.copy())
