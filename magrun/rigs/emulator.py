@@ -133,6 +133,7 @@ class RigEmulator:
             self.state == "running"
             and self.last_set is not None
             and now - self.last_set > self.watchdog_s
+            and np.any(self.rig.target)  # currents commanded: 0 A needs no ramp (nor ARM)
         ):
             self._trip(self.last_set + self.watchdog_s)
         if now > self._sim_t:
