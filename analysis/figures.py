@@ -83,7 +83,7 @@ def _palette(methods: list[str]) -> dict[str, Any]:
 # zernike (paper Fig. 4): from the data `magrun field fit` writes
 
 
-def zernike(data: dict[str, np.ndarray], coil_type: str = "small") -> Figure:
+def zernike(data: dict[str, np.ndarray], coil_type: str | None = None) -> Figure:
     """(a) MAE and R² vs order per coil type, (b) |B| of one coil at 1 A, (c) |fit error|.
 
     ``data`` holds, per coil type ``c``: ``c_orders``, ``c_mae_mT``, ``c_r2``, ``c_x_mm``,
@@ -92,6 +92,8 @@ def zernike(data: dict[str, np.ndarray], coil_type: str = "small") -> Figure:
     """
     _style()
     types = [k[: -len("_orders")] for k in data if k.endswith("_orders")]
+    if coil_type is None:  # the paper's small coil, else the first type the fit has
+        coil_type = "small" if "small" in types else (types[0] if types else "small")
     if coil_type not in types:
         raise KeyError(f"no fit data for coil type {coil_type!r} (have {types})")
     fig = Figure(figsize=(15, 4.4), layout="constrained")

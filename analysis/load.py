@@ -105,9 +105,24 @@ def _decode_meta(record: dict[str, str]) -> dict[str, Any]:
             continue
         try:
             out[key] = json.loads(text)
-        except ValueError:
+        except (ValueError, RecursionError):  # not JSON, or nested too deeply: as text
             out[key] = text
     return out
+
+
+def _protocol(path: str | Path, text: str) -> dict[str, Any]:
+    """The recorded protocol (the ``protocol`` record's JSON), or a :class:`RecordingError`."""
+    if not text:
+        return {}
+    try:
+        protocol = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise RecordingError(
+            Path(path), f"the recorded protocol is not readable JSON ({type(exc).__name__})"
+        ) from exc
+    if not isinstance(protocol, dict):
+        raise RecordingError(Path(path), "the recorded protocol is not a JSON object")
+    return protocol
 
 
 def read_recording(path: str | Path, with_images: bool = False) -> Recording:
@@ -191,7 +206,7 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
     return Recording(
         path=path,
         trial=_decode_meta(meta["trial"]),
-        protocol=json.loads(protocol_json) if protocol_json else {},
+        protocol=_protocol(path, protocol_json),
         boundaries=boundaries,
         workspace=workspace,
         recorder=meta.get("recorder", {}),
@@ -346,6 +361,9 @@ def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]
     searched = [root] if not manifests else []
     for folder in searched:
         for p in sorted(folder.rglob("*.mcap")):
+            hidden = any(part.startswith(".") for part in p.relative_to(folder).parts)
+            if hidden:  # a writer's temporary folder (".NAME.part"), not a recording
+                continue
             if p.resolve() not in listed and not is_replay(p):
                 found.append((p, None))
     return found

@@ -44,22 +44,19 @@ class FolderBusy(RuntimeError):
     """Another process holds the folder's lock: one writer per folder."""
 
 
-class FolderLock:
-    """An advisory, exclusive lock on ``folder`` (``flock`` on ``folder/.magrun-lock``), so
-    that two magrun commands never write into one folder at once (two runs, a run and its
-    ``--resume`` or ``--overwrite``). Taken at once or not at all: :class:`FolderBusy` names
-    the holder's process id and command. The lock file holds them while the lock is held and
-    is removed on :meth:`release`; the operating system releases the lock of a process that
-    dies, so a crash never leaves the folder locked."""
+class _ExclusiveLock:
+    """An advisory, exclusive ``flock`` on the file ``path``, naming ``what`` it guards.
+    Taken at once or not at all: :class:`FolderBusy` names the holder's process id and
+    command. The lock file holds them while the lock is held and is removed on
+    :meth:`release`; the operating system releases the lock of a process that dies, so a
+    crash never leaves anything locked (a later writer takes the file it left)."""
 
-    def __init__(self, folder: str | Path) -> None:
+    def __init__(self, path: Path, what: str) -> None:
         import fcntl
         import os
         import sys
 
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.path = self.folder / LOCK_NAME
+        self.path = path
         for _ in range(10):  # a holder that releases between our open and its unlink: again
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
@@ -68,8 +65,8 @@ class FolderLock:
                 holder = os.read(fd, 4096).decode("utf-8", "replace").strip() or "unknown"
                 os.close(fd)
                 raise FolderBusy(
-                    f"{self.folder} is being written by another magrun ({holder}); wait for "
-                    "it to finish or choose another --out"
+                    f"{what} is being written by another magrun ({holder}); wait for it to "
+                    "finish or choose another output"
                 ) from None
             try:
                 same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
@@ -79,7 +76,7 @@ class FolderLock:
                 break
             os.close(fd)  # the file was released and removed under us: take the new one
         else:
-            raise FolderBusy(f"{self.folder}: could not take its lock")
+            raise FolderBusy(f"{what}: could not take its lock")
         self._fd: int | None = fd
         os.ftruncate(fd, 0)
         command = " ".join(Path(sys.argv[0]).name if i == 0 else a for i, a in enumerate(sys.argv))
@@ -97,8 +94,29 @@ class FolderLock:
             os.close(self._fd)  # closing the descriptor releases the flock
             self._fd = None
 
-    def __enter__(self) -> FolderLock:
+    def __enter__(self) -> _ExclusiveLock:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.release()
+
+
+class FolderLock(_ExclusiveLock):
+    """The lock on ``folder`` (``folder/.magrun-lock``), so that two magrun commands never
+    write into one folder at once (two runs, a run and its ``--resume`` or ``--overwrite``)."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        super().__init__(self.folder / LOCK_NAME, str(self.folder))
+
+
+class OutputLock(_ExclusiveLock):
+    """The lock on one output file ``path`` (``.NAME.magrun-lock`` beside it), so that two
+    commands writing the same file (two ``replay`` or ``recover`` into one output) never
+    interleave: the second is refused while the first writes."""
+
+    def __init__(self, path: str | Path) -> None:
+        target = Path(path)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        super().__init__(target.parent / f".{target.name}{LOCK_NAME}", str(target))

@@ -7,6 +7,11 @@ ends within 0.01 mm of where the next begins, the last of the first). ``critical
 boundary whose clearance matters (the spine's anterior wall, next to the spinal cord), and
 ``path`` is a route through the phantom for trajectories to follow.
 
+A file is refused (with the line and field) where a coordinate or radius is beyond
+:data:`MAX_EXTENT_MM`, an arc sweeps more than a turn, the outline is not a simple closed
+curve (boundaries that cross or touch each other, checked with Shapely) or encloses no area,
+or the path leaves the outline.
+
     >>> from magrun.phantom import load_phantom
     >>> phantom = load_phantom("protocols/phantoms/spine_l3l4.yaml")   # doctest: +SKIP
     >>> phantom.walls()                      # magrun.scene.Walls, m: what the simulator stops at
@@ -18,11 +23,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from magrun.scene import Walls
 from magrun.yamlio import load_yaml_model
@@ -33,6 +38,12 @@ FloatArray = NDArray[np.float64]
 ARC_CHORD_MM = 0.25
 #: how far consecutive boundaries may be apart and still join, mm
 JOIN_TOLERANCE_MM = 0.01
+#: the largest coordinate and radius a phantom may have, mm (a protocol's workspace is at
+#: most a metre across); with arcs of at most a turn it bounds the outline's points
+MAX_EXTENT_MM = 1000.0
+
+Coordinate = Annotated[float, Field(ge=-MAX_EXTENT_MM, le=MAX_EXTENT_MM, allow_inf_nan=False)]
+Point = tuple[Coordinate, Coordinate]
 
 
 class _Strict(BaseModel):
@@ -40,10 +51,16 @@ class _Strict(BaseModel):
 
 
 class Arc(_Strict):
-    center: tuple[float, float]
-    radius: float = Field(gt=0, allow_inf_nan=False)
-    from_deg: float = Field(allow_inf_nan=False)
-    to_deg: float = Field(allow_inf_nan=False)
+    center: Point
+    radius: float = Field(gt=0, le=MAX_EXTENT_MM, allow_inf_nan=False)
+    from_deg: float = Field(ge=-720, le=720, allow_inf_nan=False)
+    to_deg: float = Field(ge=-720, le=720, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _one_turn(self) -> Arc:
+        if abs(self.to_deg - self.from_deg) > 360:
+            raise ValueError("an arc sweeps at most 360 degrees")
+        return self
 
     def points(self) -> FloatArray:
         sweep = math.radians(self.to_deg - self.from_deg)
@@ -57,10 +74,20 @@ class ArcPiece(_Strict):
 
 
 class PointsPiece(_Strict):
-    points: Annotated[list[tuple[float, float]], Field(min_length=1)]
+    points: Annotated[list[Point], Field(min_length=1)]
 
 
-Piece = ArcPiece | PointsPiece
+def _piece_kind(value: Any) -> str:
+    """A piece's kind by its one key (so that errors speak of that kind only)."""
+    if isinstance(value, dict):
+        return "arc" if "arc" in value else "points"
+    return "arc" if isinstance(value, ArcPiece) else "points"
+
+
+Piece = Annotated[
+    Annotated[ArcPiece, Tag("arc")] | Annotated[PointsPiece, Tag("points")],
+    Discriminator(_piece_kind),
+]
 Chain = Annotated[list[Piece], Field(min_length=1)]
 
 
@@ -97,7 +124,39 @@ class PhantomSpec(_Strict):
                     f"boundary {name!r} ends {gap:.3f} mm from where {nxt!r} begins; "
                     "the boundaries must close the outline"
                 )
+        # each boundary's first point is the previous one's last, within the tolerance: one
+        # point per join, or the join's two points can make a sliver that crosses itself
+        outline = _outline(np.concatenate([lines[0][1]] + [p[1:] for _, p in lines[1:]]))
+        if self.path is not None:
+            import shapely
+
+            path = chain_points(self.path)
+            out = [p for p in path if not outline.covers(shapely.Point(p))]
+            if out:
+                raise ValueError(
+                    f"the path leaves the outline: ({out[0][0]:g}, {out[0][1]:g}) mm is outside"
+                )
         return self
+
+
+def _outline(points: FloatArray) -> Any:
+    """The outline as a Shapely polygon, or a ``ValueError`` where it is not a simple closed
+    curve enclosing an area (boundaries that cross: a bow tie; a chain back over itself)."""
+    import shapely
+    from shapely.validation import explain_validity
+
+    if len(np.unique(points, axis=0)) < 3:
+        raise ValueError("the boundaries enclose no area (fewer than 3 distinct points)")
+    polygon = shapely.Polygon(points)
+    if not polygon.is_valid:
+        why = explain_validity(polygon)  # e.g. "Self-intersection[0 0]"
+        raise ValueError(
+            f"the outline is not a simple closed curve ({why}, mm): boundaries may meet only "
+            "end to end"
+        )
+    if polygon.area < 1e-6:  # mm²
+        raise ValueError("the boundaries enclose no area")
+    return polygon
 
 
 @dataclass(frozen=True)

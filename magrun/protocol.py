@@ -51,7 +51,7 @@ from magrun.rigs.plant import Imperfections
 
 if TYPE_CHECKING:
     from magrun.robot import RobotParams
-from magrun.yamlio import YamlModelError, load_yaml_model, validate_data
+from magrun.yamlio import load_yaml_model, safe_json, validate_data
 
 #: most trials one protocol file may expand to: a sweep beyond it is refused before anything
 #: runs (10,000 trials of the paper's 52 s is six days of rig time)
@@ -69,16 +69,28 @@ class _Strict(BaseModel):
 # conditions
 
 
+#: the bounds of a protocol's rates and noise: beyond them a trial is no experiment, and a
+#: control rate of 1e9 Hz or a latency of a day would run (or wait) for ever
+MAX_RATE_HZ = 1000.0  # control and feedback rates, Hz (coil amplifiers: a few kHz at most)
+MIN_CONTROL_RATE_HZ = 1.0
+MAX_LATENCY_MS = 10_000.0
+MAX_NOISE_MM = 1000.0  # a protocol's workspace is at most a metre across
+MAX_NOISE_DEG = 360.0
+Rate = Annotated[float, Field(gt=0, le=MAX_RATE_HZ, allow_inf_nan=False)]
+NoiseMm = Annotated[float, Field(ge=0, le=MAX_NOISE_MM, allow_inf_nan=False)]
+NoiseDeg = Annotated[float, Field(ge=0, le=MAX_NOISE_DEG, allow_inf_nan=False)]
+
+
 class Conditions(_Strict):
     """Feedback conditions of one trial: unit-suffixed as written, in SI as properties."""
 
-    tracking_rate_hz: PositiveFloat | None = Field(
+    tracking_rate_hz: Rate | None = Field(
         None, description="Fluoroscopy (feedback) frame rate, Hz; default: every control tick."
     )
-    noise_sigma_mm: NonNegativeFloat = Field(
+    noise_sigma_mm: NoiseMm = Field(
         0.0, description="Gaussian feedback noise, standard deviation on x and on y, mm."
     )
-    noise_sigma_deg: NonNegativeFloat = Field(
+    noise_sigma_deg: NoiseDeg = Field(
         0.0, description="Gaussian feedback noise on the heading, standard deviation, degrees."
     )
 
@@ -105,15 +117,13 @@ CONDITION_SLUGS = {
     "noise_sigma_deg": ("sigmatheta", "deg"),
 }
 
-SweepValues = Annotated[list[NonNegativeFloat], Field(min_length=1)]
-
 
 class Sweep(_Strict):
     """Conditions to vary: each key lists its values; trials cover every combination."""
 
-    tracking_rate_hz: Annotated[list[PositiveFloat], Field(min_length=1)] | None = None
-    noise_sigma_mm: SweepValues | None = None
-    noise_sigma_deg: SweepValues | None = None
+    tracking_rate_hz: Annotated[list[Rate], Field(min_length=1)] | None = None
+    noise_sigma_mm: Annotated[list[NoiseMm], Field(min_length=1)] | None = None
+    noise_sigma_deg: Annotated[list[NoiseDeg], Field(min_length=1)] | None = None
 
     @field_validator("*")
     @classmethod
@@ -196,32 +206,34 @@ TrajectorySpec = Annotated[SCurve | OutAndBack, Field(discriminator="kind")]
 class KalmanSettings(_Strict):
     """Kalman filter noise; ``measurement_sigma_mm: condition`` follows the trial's noise."""
 
-    measurement_sigma_mm: PositiveFloat | Literal["condition"] = Field(
-        "condition",
-        description=(
-            "Measurement noise assumed by the filter, mm; 'condition': the trial's "
-            "noise_sigma_mm, floored at tracker_sigma_mm."
-        ),
+    measurement_sigma_mm: Annotated[float, Field(gt=0, le=MAX_NOISE_MM)] | Literal["condition"] = (
+        Field(
+            "condition",
+            description=(
+                "Measurement noise assumed by the filter, mm; 'condition': the trial's "
+                "noise_sigma_mm, floored at tracker_sigma_mm."
+            ),
+        )
     )
-    tracker_sigma_mm: PositiveFloat = Field(
+    tracker_sigma_mm: Annotated[float, Field(gt=0, le=MAX_NOISE_MM)] = Field(
         0.1, description="The camera tracker's own noise, mm (the floor of the above)."
     )
-    measurement_sigma_deg: PositiveFloat = 3.0
-    process_sigma_mm: PositiveFloat | Literal["robot"] = Field(
+    measurement_sigma_deg: Annotated[float, Field(gt=0, le=MAX_NOISE_DEG)] = 3.0
+    process_sigma_mm: Annotated[float, Field(gt=0, le=MAX_NOISE_MM)] | Literal["robot"] = Field(
         0.3,
         description=(
             "Process noise per control tick and axis, mm; 'robot': the robot's measured "
             "prediction error (robots.yaml prediction_sigma_mm)."
         ),
     )
-    process_sigma_deg: PositiveFloat | Literal["robot"] = Field(
+    process_sigma_deg: Annotated[float, Field(gt=0, le=MAX_NOISE_DEG)] | Literal["robot"] = Field(
         2.0,
         description=(
             "Process noise of the heading per control tick, degrees; 'robot': robots.yaml "
             "prediction_sigma_deg."
         ),
     )
-    heading_bias_sigma_deg: NonNegativeFloat = Field(
+    heading_bias_sigma_deg: NoiseDeg = Field(
         0.0,
         description=(
             "The filter's heading bias (the model's heading drift per tick, learnt from the "
@@ -236,7 +248,7 @@ class KalmanSettings(_Strict):
             "mobility state."
         ),
     )
-    outlier_gate_sigma: NonNegativeFloat = Field(
+    outlier_gate_sigma: Annotated[float, Field(ge=0, le=1000)] = Field(
         0.0,
         description=(
             "Reject a measurement whose pose lies more than this many standard deviations "
@@ -253,19 +265,23 @@ DEFAULT_LATENCY_MS = 5.0
 
 
 class ControllerSettings(_Strict):
-    rate_hz: PositiveFloat = Field(25.5, description="Control rate, Hz.")
+    rate_hz: Annotated[float, Field(ge=MIN_CONTROL_RATE_HZ, le=MAX_RATE_HZ)] = Field(
+        25.5, description="Control rate, Hz."
+    )
     horizon: Annotated[int, Field(ge=1, le=100)] = Field(20, description="NMPC horizon, ticks.")
-    latency_ms: NonNegativeFloat | Literal["measured", "none"] = Field(
-        DEFAULT_LATENCY_MS,
-        description=(
-            "Simulated rig: the time between a tick's observation and its new currents, ms, "
-            "during which the plant runs on the previous currents. A number is declared: the "
-            "same protocol and seed give the same trial on any machine, under any load. "
-            "'measured': the tick's wall-clock compute instead, and a tick that overruns the "
-            "period stretches (timing studies; results then depend on the machine). 'none': 0. "
-            "The measured compute time is recorded in every case, and ticks whose compute "
-            "overran the control period are counted."
-        ),
+    latency_ms: Annotated[float, Field(ge=0, le=MAX_LATENCY_MS)] | Literal["measured", "none"] = (
+        Field(
+            DEFAULT_LATENCY_MS,
+            description=(
+                "Simulated rig: the time between a tick's observation and its new currents, ms, "
+                "during which the plant runs on the previous currents. A number is declared: the "
+                "same protocol and seed give the same trial on any machine, under any load. "
+                "'measured': the tick's wall-clock compute instead, and a tick that overruns the "
+                "period stretches (timing studies; results then depend on the machine). 'none': 0. "
+                "The measured compute time is recorded in every case, and ticks whose compute "
+                "overran the control period are counted."
+            ),
+        )
     )
     plan_across_latency: bool = Field(
         False,
@@ -331,6 +347,23 @@ class ControllerSettings(_Strict):
             "gain. Default: none, the models as fitted."
         ),
     )
+
+    @field_validator("latency_ms", mode="before")
+    @classmethod
+    def _latency_range(cls, value: Any) -> Any:
+        # a number out of range is said so (the union would only name the words it takes)
+        number = value
+        if isinstance(value, str) and value not in ("measured", "none"):
+            try:
+                number = float(value)
+            except ValueError:
+                return value
+        numeric = isinstance(number, int | float) and not isinstance(number, bool)
+        if numeric and not 0 <= number <= MAX_LATENCY_MS:
+            raise ValueError(
+                f"{value} ms: a latency is from 0 to {MAX_LATENCY_MS:g} ms, or measured, or none"
+            )
+        return value
 
     @field_validator("coil_gains")
     @classmethod
@@ -413,25 +446,25 @@ class SafetySettings(_Strict):
     """When a trial stops safely (magrun.safety): the currents ramp to zero at the slew
     limit, the trial ends, and the manifest and recording say why (status "stopped")."""
 
-    lost_timeout_s: PositiveFloat | None = Field(
+    lost_timeout_s: Annotated[float, Field(gt=0, le=MAX_TRIAL_S)] | None = Field(
         1.0,
         description=(
             "Stop when the camera tracker has lost the robot for longer than this, s "
             "(null: never; only with camera feedback)."
         ),
     )
-    workspace_margin_mm: Annotated[float, Field(ge=0)] | None = Field(
+    workspace_margin_mm: Annotated[float, Field(ge=0, le=1000)] | None = Field(
         5.0,
         description=(
             "Stop when the robot is further than this outside the workspace square, mm "
             "(null: never)."
         ),
     )
-    stall_timeout_ms: PositiveFloat = Field(
+    stall_timeout_ms: Annotated[float, Field(gt=0, le=10_000)] = Field(
         100.0,
         description=(
             "Hardware rig: the driver ramps the currents to zero when no command arrived "
-            "for this long, ms."
+            "for this long, ms (at most 10 s, the rig protocol's longest watchdog)."
         ),
     )
 
@@ -559,6 +592,10 @@ def load_plant_file(path: str | Path) -> PlantFile:
     return load_yaml_model(path, PlantFile)
 
 
+#: a log-normal factor's σ: at 2 a factor is beyond e² (7.4×) one time in 20
+Sigma = Annotated[float, Field(ge=0, le=2, allow_inf_nan=False)]
+
+
 class SimulationSettings(PlantTerms):
     """The simulated rig's plant: how far each trial's robot and coils are from the models'
     nominal ones, and which real bench's imperfections it has.
@@ -575,10 +612,10 @@ class SimulationSettings(PlantTerms):
             "relative to the protocol file's folder); settings given here override it."
         ),
     )
-    mass_sigma: NonNegativeFloat = Field(0.1, description="σ of the mass (and inertia) factor.")
-    drag_sigma: NonNegativeFloat = Field(0.1, description="σ of the drag coefficients' factor.")
-    moment_sigma: NonNegativeFloat = Field(0.05, description="σ of the magnetic moment's factor.")
-    coil_gain_sigma: NonNegativeFloat = Field(
+    mass_sigma: Sigma = Field(0.1, description="σ of the mass (and inertia) factor.")
+    drag_sigma: Sigma = Field(0.1, description="σ of the drag coefficients' factor.")
+    moment_sigma: Sigma = Field(0.05, description="σ of the magnetic moment's factor.")
+    coil_gain_sigma: Sigma = Field(
         0.02, description="σ of each coil's gain (field per ampere), one draw per coil."
     )
     plant_seed: Annotated[int, Field(ge=0, lt=2**63)] | None = Field(
@@ -940,10 +977,7 @@ def load_protocol(path: str | Path, overrides: Sequence[str] = ()) -> Protocol:
 def protocol_from_json(text: str, source: str, overrides: Sequence[str] = ()) -> Protocol:
     """A recorded protocol (the MCAP ``protocol`` record's JSON) with ``overrides`` applied,
     validated again; ``source`` names it in errors."""
-    try:
-        data = json.loads(text)
-    except ValueError as exc:
-        raise YamlModelError([f"{source}: the recorded protocol is not JSON: {exc}"]) from exc
+    data = safe_json(text, source)
     if isinstance(data, dict) and isinstance(data.get("conditions"), dict):
         # a dump lists every condition, the swept ones too (as their default): as written,
         # a swept quantity is not also fixed

@@ -90,10 +90,11 @@ def metadata_text(value: Any) -> str:
 
 
 def metadata_value(text: str) -> Any:
-    """The inverse of :func:`metadata_text` (text that is not JSON stays text)."""
+    """The inverse of :func:`metadata_text` (text that is not JSON, or nested too deeply to
+    decode, stays text)."""
     try:
         return json.loads(text)
-    except ValueError:
+    except (ValueError, RecursionError):
         return text
 
 

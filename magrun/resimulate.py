@@ -17,7 +17,6 @@ through; its files are moved to the requested name afterwards.
 from __future__ import annotations
 
 import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -131,16 +130,23 @@ def resimulate(
             "rerun's plant saw this machine's timings, so it differs from the recording"
         )
     out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix=f".{out.stem}.", dir=out.parent) as tmp:
+    # the trial is recorded in a hidden folder named after the output and moved out when
+    # whole; one a killed re-simulation left is removed by the next into the same output
+    # (the command line holds the output's lock meanwhile: magrun.atomic.OutputLock)
+    tmp = out.parent / f".{out.name}.part"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
         entry = execute_trial(trial, tmp, view=view)
         if entry.get("status") != "ok":
             raise ReplayError(
                 f"{source}: the re-simulated trial ended {entry.get('status')}: "
                 f"{entry.get('error') or 'no reason given'}"
             )
-        base = Path(tmp) / trial.relpath
+        base = tmp / trial.relpath
         shutil.move(base.with_suffix(".mcap"), out)
         shutil.move(base.with_suffix(".rrd"), result.rrd)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     result.entry = entry
     if result.method == recorded_method and not overrides:
         result.identical = same_messages(source, out)

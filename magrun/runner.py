@@ -54,10 +54,11 @@ from magrun.trial import (
     HardwareSpec,
     RigSpec,
     RunError,
+    check_system,
     coil_gains_of,
     handshake,
-    system_of,
 )
+from magrun.yamlio import YamlModelError, read_text_file, safe_json
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
@@ -487,7 +488,8 @@ def run_protocol(
         raise RunError(f"unknown rig {rig!r}; choose {' or '.join(RIGS)}")
     elif rig == "hardware":
         raise RunError(NO_DRIVER)
-    coils = system_of(protocol)  # a bad system folder fails here (RunError), before any run
+    # a bad system folder, or damaged maps or models in it, fail here (RunError), before any run
+    coils = check_system(protocol)
     if isinstance(rig, HardwareSpec):
         # an unknown scheme, a rig out of reach or one whose channels or limits are not the
         # system's fails here (RunError), before a folder is made or a current sent
@@ -619,9 +621,11 @@ def _intact(folder: Path, entry: dict[str, Any]) -> bool:
 def _resumable(path: Path, protocol: Protocol, quick: bool, seed: int | None) -> dict[str, Any]:
     """The manifest of the run to resume in ``path``'s folder, checked to be this run's."""
     try:
-        previous: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise RunError(f"{path}: no readable manifest to resume from ({exc})") from exc
+        previous = safe_json(read_text_file(path), str(path))
+    except YamlModelError as exc:
+        raise RunError(f"no readable manifest to resume from: {exc}") from exc
+    if not isinstance(previous, dict):
+        raise RunError(f"{path}: no readable manifest to resume from (not a JSON object)")
     want = {"protocol": protocol.name, "quick": quick,
             "seed": protocol.seed if seed is None else seed}  # fmt: skip
     have = {k: previous.get(k) for k in want}

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -141,6 +141,8 @@ class HardwareSpec:
 
     driver: str
     camera: str = "driver"
+    #: the rig's shared secret (magrun.rigs.wire, "Security model"), or None
+    secret: bytes | None = field(default=None, repr=False)
 
     def __str__(self) -> str:
         return "hardware"
@@ -172,7 +174,7 @@ def make_rig(
         from magrun.rigs.hardware import HardwareRig
         from magrun.tracking.camera import Camera
 
-        driver = load_driver(kind.driver)
+        driver = load_driver(kind.driver, kind.secret)
         source = camera_source(kind.camera, driver)
         # the currents' limits are the system's, never the rig's (HardwareRig.connect)
         system = coils if coils is not None else CoilSystem.load()
@@ -203,7 +205,7 @@ def handshake(spec: HardwareSpec, coils: CoilSystem, watchdog_s: float) -> None:
     from magrun.rigs.hardware import agreed_limits
 
     try:
-        driver = load_driver(spec.driver)
+        driver = load_driver(spec.driver, spec.secret)
         driver.open(watchdog_s)
         try:
             agreed_limits(driver, coils)
@@ -341,6 +343,42 @@ def system_of(protocol: Protocol) -> CoilSystem:
         return CoilSystem.load(protocol.system)
     except CoilFileError as exc:
         raise RunError(str(exc)) from exc
+
+
+def check_system(protocol: Protocol) -> CoilSystem:
+    """What every trial of ``protocol`` is built from, built once and checked, before a run
+    folder is made (``magrun validate`` runs it too); a :class:`RunError` names the problem:
+
+    - the system folder's description, maps and fitted models, read as a trial reads them
+      (a damaged map, a model fitted to another system);
+    - the scene: the robot's body must fit in the workspace (the phantom's outline within
+      the coils' square), and the reference trajectory must stay inside both."""
+    from magrun.field.grid import ChannelGrid
+
+    coils = system_of(protocol)
+    if coils.folder is not None:
+        try:
+            ChannelGrid.load(coils)
+            system_models(coils.folder)
+        except ValueError as exc:
+            raise RunError(str(exc)) from exc
+    try:
+        scene = build_scene(protocol, coils)
+        robot = protocol.robot_params()
+        space = free_space_of(scene, robot)
+    except ValueError as exc:
+        raise RunError(f"workspace: {exc}") from exc
+    poses = scene.reference.poses
+    square = np.abs(poses[:, :2]).max(axis=1) > scene.half_width
+    outside = square | ~space.inside(poses[:, :2]) if scene.boundaries else square
+    if np.any(outside):
+        x, y = poses[int(np.argmax(outside)), :2] * 1e3
+        where = "the phantom's outline" if scene.boundaries else "the coils' workspace"
+        raise RunError(
+            f"trajectory: leaves {where} at ({x:.2f}, {y:.2f}) mm (workspace: ±"
+            f"{scene.half_width * 1e3:g} mm)"
+        )
+    return coils
 
 
 @cache

@@ -11,6 +11,7 @@ location as a path of keys and indices. Walking the path through the node tree g
 from __future__ import annotations
 
 import difflib
+import json
 import re
 import stat
 import typing
@@ -105,8 +106,9 @@ def _known_keys(model: type[BaseModel], parent: tuple[int | str, ...]) -> set[st
 
 
 def _message(model: type[BaseModel], err: Any) -> str:
-    """pydantic's message, with a "did you mean" for a misspelt key."""
-    msg = str(err["msg"])
+    """pydantic's message (a validator's own without pydantic's "Value error, " before it),
+    with a "did you mean" for a misspelt key."""
+    msg = str(err["msg"]).removeprefix("Value error, ")
     loc = tuple(err["loc"])
     if err["type"] == "extra_forbidden" and loc and isinstance(loc[-1], str):
         close = difflib.get_close_matches(loc[-1], _known_keys(model, loc[:-1]), n=1)
@@ -230,6 +232,54 @@ def safe_yaml(text: str, source: str) -> tuple[yaml.Node | None, Any]:
     except ValueError as exc:  # e.g. an integer of more digits than Python converts
         raise YamlModelError([f"{source}: not valid YAML: {exc}"]) from exc
     return root, data
+
+
+def safe_json(text: str, source: str, limit: int = MAX_YAML_CHARS) -> Any:
+    """The data of JSON ``text``: the one hardened reader of the JSON magrun reads from
+    files and recordings (a recorded protocol, a manifest, a model's or weights' metadata).
+    A size limit, and a :class:`YamlModelError` naming ``source`` for whatever is wrong: bad
+    syntax, nesting too deep for the decoder, a number too long to convert, NaN or infinity
+    (not JSON, though Python's decoder takes them). An empty ``source`` names nothing (the
+    caller's message names the file)."""
+    at = f"{source}: " if source else ""
+    if len(text) > limit:
+        raise YamlModelError(
+            [f"{at}not read: {len(text):,} characters, more than the {limit:,} allowed"]
+        )
+
+    def constant(name: str) -> Any:
+        raise ValueError(f"{name} is not a JSON number")
+
+    try:
+        return json.loads(text, parse_constant=constant)
+    except RecursionError as exc:  # the decoder recurses once per nesting level
+        raise YamlModelError([f"{at}not valid JSON: nested too deeply"]) from exc
+    except ValueError as exc:  # JSONDecodeError, an integer too long, NaN
+        raise YamlModelError([f"{at}not valid JSON: {exc}"]) from exc
+
+
+#: the most an .npz archive magrun reads may hold once unpacked, bytes (the shipped
+#: reference maps and UNet weights are a few MB): a bound on a hostile archive's memory
+MAX_NPZ_BYTES = 1 << 30
+
+
+def check_npz(fh: typing.BinaryIO, written_by: str, limit: int = MAX_NPZ_BYTES) -> None:
+    """Raise ``ValueError`` unless the open file ``fh`` is a zip archive (an ``.npz``) whose
+    members unpack to at most ``limit`` bytes; ``written_by`` says which command writes one.
+    Leaves ``fh`` at its start."""
+    import zipfile
+
+    if fh.read(4) != b"PK\x03\x04":
+        raise ValueError(f"not an .npz archive ({written_by} writes one)")
+    fh.seek(0)
+    try:
+        with zipfile.ZipFile(fh) as archive:
+            size = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, EOFError) as exc:
+        raise ValueError(f"not a readable .npz archive: {exc}") from exc
+    if size > limit:
+        raise ValueError(f"its arrays unpack to {size:,} bytes, more than the {limit:,} allowed")
+    fh.seek(0)
 
 
 def parse_yaml_model(

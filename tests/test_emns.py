@@ -229,7 +229,7 @@ BAD = {
     "a zero-length direction": (
         "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"
         "    Source_Direction: [0, 0, 0]\n    B_Coeff: [1.0e-7]\n",
-        ":6: n.a.Source_Direction: Value error, a source direction of zero length",
+        ":6: n.a.Source_Direction: a source direction of zero length",
     ),
     "an order-2 source": (
         "Coil_List: [n]\nn:\n  Source_List: [a]\n  a:\n    Source_Position: [0, 0, 0.1]\n"

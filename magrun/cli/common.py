@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,25 @@ class InputError(click.ClickException):
     """User input we cannot use: exit status 2, message only."""
 
     exit_code = INPUT_ERROR
+
+
+@contextlib.contextmanager
+def claimed_outputs(outputs: list[Path], inputs: list[Path], overwrite: bool) -> Iterator[None]:
+    """Hold each output's lock (:class:`~magrun.atomic.OutputLock`) while the block writes
+    them, and check them (:func:`fresh_outputs`) once held: a second command writing the same
+    output is refused (InputError) rather than interleaved."""
+    from magrun.atomic import FolderBusy, OutputLock
+
+    with contextlib.ExitStack() as stack:
+        for out in outputs:
+            try:
+                stack.enter_context(OutputLock(out))
+            except FolderBusy as exc:
+                raise InputError(str(exc)) from exc
+            except OSError as exc:
+                raise InputError(f"{out}: cannot write there: {exc}") from exc
+        fresh_outputs(outputs, inputs, overwrite)
+        yield
 
 
 def fresh_outputs(outputs: list[Path], inputs: list[Path], overwrite: bool) -> None:

@@ -20,12 +20,24 @@ from magrun.cli.viewer import LiveView, live_view, live_view_options
 def validate(protocols: tuple[Path, ...]) -> None:
     """Check protocol files without running anything.
 
-    Exit status 0 when every file is valid; 2 with one line per problem (file:line: field:
-    message) otherwise.
+    Each file's schema and values, the files it names (robots, phantom, coil system with its
+    maps and fitted models), and what a run builds before its first trial: the robot must fit
+    in the workspace and the trajectory stay inside it. Exit status 0 when every file is
+    valid; 2 with one line per problem (file:line: field: message) otherwise.
     """
+    from magrun.trial import RunError, check_system
+
+    problems = []
     for path, protocol in zip(protocols, load_protocols(protocols), strict=True):
+        try:  # what run reads before its first trial: the system folder's maps and models
+            check_system(protocol)
+        except RunError as exc:
+            problems.append(f"{path}: {exc}")
+            continue
         n, nq = len(protocol.expand()), len(protocol.expand(quick=True))
         click.echo(f"{path}: ok ({protocol.name}: {n} trials, {nq} with --quick)")
+    if problems:
+        raise InputError("\n".join(problems))
 
 
 @click.group("protocol")
@@ -162,6 +174,12 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
     "`magrun rig-emulator` serves one) or a plugin's scheme.",
 )  # fmt: skip
 @click.option(
+    "--rig-secret", "rig_secret", type=click.Path(dir_okay=False, path_type=Path),
+    envvar="MAGRUN_RIG_SECRET_FILE", show_envvar=True,
+    help="Hardware rig: a file holding the rig's shared secret (chmod 600); needed for a rig "
+    "that is not on this machine (docs: Rigs, 'Security').",
+)  # fmt: skip
+@click.option(
     "--camera", "camera_source", default="driver", show_default=True, metavar="SOURCE",
     help="Hardware rig: 'driver' (frames over the driver's connection) or an OpenCV source "
     "(device index, video file, GStreamer pipeline).",
@@ -186,6 +204,7 @@ def run(
     jobs: int,
     rig: str,
     driver: str | None,
+    rig_secret: Path | None,
     camera_source: str,
     executor: str,
     ray_address: str | None,
@@ -215,8 +234,16 @@ def run(
         raise InputError("--resume and --overwrite exclude each other")
     if driver is not None and rig != "hardware":
         raise InputError("--driver is for --rig hardware")
+    secret = None
+    if rig_secret is not None and driver is not None:
+        from magrun.rigs.wire import read_secret
+
+        try:
+            secret = read_secret(rig_secret)
+        except ValueError as exc:
+            raise InputError(str(exc)) from exc
     (protocol,) = load_protocols((protocol_file,), overrides)
-    the_rig: RigSpec = HardwareSpec(driver, camera_source) if driver is not None else rig
+    the_rig: RigSpec = HardwareSpec(driver, camera_source, secret) if driver is not None else rig
     n = len(protocol.expand(quick=quick, seed=seed))
     with live_view(open_view, connect, web, web_port, f"magrun run {protocol_file} --web") as lv:
         _run(

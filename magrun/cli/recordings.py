@@ -7,9 +7,8 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 
-from magrun.cli.common import InputError, fresh_outputs
+from magrun.cli.common import InputError, claimed_outputs
 from magrun.cli.viewer import WEB_PORT, check_display, open_file
 
 
@@ -113,15 +112,15 @@ def recover_cmd(src: Path, dst: Path, rrd: bool, overwrite: bool, as_json: bool)
 
     if dst.suffix.lower() != ".mcap":
         raise InputError(f"{dst}: the recovered file must be an .mcap")
-    fresh_outputs([dst, *([dst.with_suffix(".rrd")] if rrd else [])], [src], overwrite)
-    try:
-        report = recover(src, dst)
-    except ValueError as exc:
-        raise InputError(str(exc)) from exc
-    rrd_path = None
-    if rrd:
-        rrd_path = dst.with_suffix(".rrd")
-        _mcap_to_rrd(dst, rrd_path)
+    rrd_path = dst.with_suffix(".rrd") if rrd else None
+    # held while written: a second recover or replay into DST is refused, not interleaved
+    with claimed_outputs([dst, *([rrd_path] if rrd_path else [])], [src], overwrite):
+        try:
+            report = recover(src, dst)
+        except ValueError as exc:
+            raise InputError(str(exc)) from exc
+        if rrd_path is not None:
+            _mcap_to_rrd(dst, rrd_path)
     if as_json:
         doc = {
             "source": str(src), "recovered": str(dst), "rrd": str(rrd_path) if rrd_path else None,
@@ -167,6 +166,15 @@ def figures(
     from analysis.report import report_markdown
 
     out = out or (recordings / "figures" if recordings.is_dir() else recordings.parent)
+    z = None  # read first: a bad file is refused before the recordings are
+    if not no_zernike:
+        from magrun.field.fitting import FIGURE_FILE, read_figure_data
+
+        path = zernike_data or Path(__file__).parents[1] / "field" / "data" / FIGURE_FILE
+        try:
+            z = read_figure_data(path)
+        except ValueError as exc:
+            raise InputError(f"{path}: not Zernike figure data: {exc}") from exc
     try:
         data = analysis.load(
             recordings,
@@ -178,13 +186,6 @@ def figures(
         click.echo(f"unreadable: {problem}", err=True)
     if data.trials.empty:
         raise InputError(f"{recordings}: no recordings found (run `magrun run PROTOCOL` first)")
-    z = None
-    if not no_zernike:
-        from magrun.field.fitting import FIGURE_FILE
-
-        path = zernike_data or Path(__file__).parents[1] / "field" / "data" / FIGURE_FILE
-        with np.load(path) as npz:
-            z = dict(npz)
     written = analysis.figures.draw_all(data, out, zernike_data=z)
     results = analysis.write_results(data, out / "results.csv")
     replays = _replays(recordings, out, written)

@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from magrun.cli.common import SET_HELP, InputError, fresh_outputs
+from magrun.cli.common import SET_HELP, InputError, claimed_outputs
 from magrun.cli.viewer import LiveView, live_view, live_view_options
 from magrun.control import METHODS
 
@@ -99,8 +99,6 @@ def replay(
     --view, --connect and --web show the output in a Rerun viewer as it is written (a
     re-simulation as it runs).
     """
-    from magrun.recorded import RecordingReadError
-    from magrun.replay import ReplayError, replay_estimator, write_replay
 
     if recording.suffix.lower() != ".mcap":
         raise InputError(f"{recording}: replay reads a trial's .mcap recording")
@@ -128,7 +126,29 @@ def replay(
     out = out or recording.with_name(f"{recording.stem}.{label}.mcap")
     if out.suffix.lower() != ".mcap":
         raise InputError(f"--out {out}: the output must be an .mcap file")
-    fresh_outputs([out, out.with_suffix(".rrd")], [recording], overwrite)
+    # held while written: a second replay or recover into OUT is refused, not interleaved
+    with claimed_outputs([out, out.with_suffix(".rrd")], [recording], overwrite):
+        _estimator_replay(
+            recording, overrides, estimator, label, out, open_view, connect, web, web_port,
+            as_json,
+        )  # fmt: skip
+
+
+def _estimator_replay(
+    recording: Path,
+    overrides: tuple[str, ...],
+    estimator: str | None,
+    label: str,
+    out: Path,
+    open_view: bool,
+    connect: str | None,
+    web: bool,
+    web_port: int,
+    as_json: bool,
+) -> None:
+    from magrun.recorded import RecordingReadError
+    from magrun.replay import ReplayError, replay_estimator, write_replay
+
     try:
         rec, result = replay_estimator(recording, overrides, estimator, label)
     except (ReplayError, RecordingReadError) as exc:
@@ -220,13 +240,13 @@ def _resimulate(
     out = out or recording.with_name(f"{recording.stem}.{label}.mcap")
     if out.suffix.lower() != ".mcap":
         raise InputError(f"--out {out}: the output must be an .mcap file")
-    fresh_outputs([out, out.with_suffix(".rrd")], [recording], overwrite)
-    if not as_json:
-        click.echo(f"{recording.name}: re-simulating ...", err=True)
-    try:
-        result = resimulate(recording, method, overrides, out, view=lv.url if lv else "")
-    except (ReplayError, RecordingReadError) as exc:
-        raise InputError(str(exc)) from exc
+    with claimed_outputs([out, out.with_suffix(".rrd")], [recording], overwrite):
+        if not as_json:
+            click.echo(f"{recording.name}: re-simulating ...", err=True)
+        try:
+            result = resimulate(recording, method, overrides, out, view=lv.url if lv else "")
+        except (ReplayError, RecordingReadError) as exc:
+            raise InputError(str(exc)) from exc
     summary = result.summary()
     if as_json:
         click.echo(json.dumps(summary))

@@ -42,6 +42,58 @@ CENTRAL_HALF_WIDTH = 21.5e-3
 MODEL_FILE = zernike.SYSTEM_MODEL_FILE  # "zernike_model.json"
 REPORT_FILE = "zernike_fit.json"
 FIGURE_FILE = "zernike_figure.npz"
+#: the arrays of one coil type in the figure data: the fit per order (1-D, one length) and
+#: the maps at 1 A (x, y axes in mm; field and error (nx, ny) in mT)
+FIGURE_CURVES = ("orders", "mae_mT", "r2")
+FIGURE_MAPS = ("field_mT", "error_mT")
+
+
+def read_figure_data(path: str | Path) -> dict[str, NDArray[np.float64]]:
+    """The Zernike figure's data as :meth:`FitResult.save` writes it (``FIGURE_FILE``),
+    checked: a bounded ``.npz`` of finite float arrays, per coil type ``c`` ``c_orders``,
+    ``c_mae_mT``, ``c_r2`` of one length, ``c_x_mm`` and ``c_y_mm`` (at least 2 each) and
+    ``c_field_mT``, ``c_error_mT`` of shape (len x, len y). ``ValueError`` says what is not."""
+    import zipfile
+
+    from magrun.yamlio import check_npz
+
+    try:
+        with open(path, "rb") as fh:
+            check_npz(fh, "magrun field fit")
+            with np.load(fh, allow_pickle=False) as npz:
+                data = {k: np.asarray(npz[k]) for k in npz.files}
+    except (OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"not a readable .npz archive: {exc}") from exc
+    types = sorted(k[: -len("_orders")] for k in data if k.endswith("_orders"))
+    if not types:
+        raise ValueError(
+            "no coil type's fit (no `<type>_orders` array; magrun field fit writes it)"
+        )
+    out: dict[str, NDArray[np.float64]] = {}
+    for t in types:
+        keys = [f"{t}_{k}" for k in (*FIGURE_CURVES, "x_mm", "y_mm", *FIGURE_MAPS)]
+        missing = [k for k in keys if k not in data]
+        if missing:
+            raise ValueError(f"coil type {t!r}: no {', '.join(missing)}")
+        for k in keys:
+            a = data[k]
+            if a.dtype.kind not in "iuf" or not np.all(np.isfinite(a)):
+                raise ValueError(f"{k}: not an array of finite numbers")
+            out[k] = a.astype(np.float64)
+        curves = [out[f"{t}_{k}"] for k in FIGURE_CURVES]
+        if any(c.ndim != 1 or len(c) != len(curves[0]) or not len(c) for c in curves):
+            raise ValueError(
+                f"coil type {t!r}: {', '.join(FIGURE_CURVES)} are not 1-D of one length"
+            )
+        x, y = out[f"{t}_x_mm"], out[f"{t}_y_mm"]
+        if x.ndim != 1 or y.ndim != 1 or len(x) < 2 or len(y) < 2:
+            raise ValueError(f"coil type {t!r}: x_mm and y_mm must be 1-D axes of 2 or more")
+        for k in FIGURE_MAPS:
+            if out[f"{t}_{k}"].shape != (len(x), len(y)):
+                raise ValueError(
+                    f"{t}_{k}: shape {out[f'{t}_{k}'].shape}, not ({len(x)}, {len(y)})"
+                )
+    return out
 
 
 @dataclass(frozen=True)

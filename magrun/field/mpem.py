@@ -40,6 +40,13 @@ BACKGROUND = "Offset"
 BACKGROUND_MAP = "background"
 
 
+#: the largest source position (m) and coefficient magnitude an MPEM file may hold. Real
+#: calibrations fit far sources with huge coefficients to model a near-uniform field
+#: (OctoMag's: 2e5 m, 4e12); these bounds keep |r|⁵ and b/|r|³ well inside floating point
+MAX_SOURCE_POSITION_M = 1e9
+MAX_COEFFICIENT = 1e30
+
+
 class MpemError(ValueError):
     """An MPEM file that cannot be read or used; the message names the file (and line)."""
 
@@ -80,13 +87,27 @@ class MpemSource(BaseModel):
             raise ValueError("must be finite numbers")
         return v
 
+    @field_validator("position")
+    @classmethod
+    def _near(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if max(map(abs, v)) > MAX_SOURCE_POSITION_M:
+            raise ValueError(f"a source more than {MAX_SOURCE_POSITION_M:g} m from the origin")
+        return v
+
+    @field_validator("b_coeff")
+    @classmethod
+    def _bounded(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if max(map(abs, v)) > MAX_COEFFICIENT:
+            raise ValueError(f"a coefficient larger than {MAX_COEFFICIENT:g} in magnitude")
+        return v
+
     @field_validator("direction")
     @classmethod
     def _unit(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        norm = math.sqrt(sum(x * x for x in v))
-        if norm < 1e-12:
+        scale = max(map(abs, v))  # scaled first: the squares of huge components overflow
+        if scale == 0 or not (norm := math.hypot(*(x / scale for x in v))) > 1e-12:
             raise ValueError("a source direction of zero length")
-        return (v[0] / norm, v[1] / norm, v[2] / norm)
+        return (v[0] / scale / norm, v[1] / scale / norm, v[2] / scale / norm)
 
     @field_validator("b_coeff")
     @classmethod
@@ -241,6 +262,31 @@ def plane_maps(
     return maps
 
 
+def _clear_of_sources(
+    model: MpemModel,
+    plane_z: float,
+    center: tuple[float, float],
+    half_width: float,
+    pitch: float,
+    source: str,
+) -> None:
+    """An :class:`MpemError` where a source lies within one grid pitch of the sampled square:
+    a dipole's field grows as 1/r³ there and the maps could not hold it (the sources of a
+    real system sit in its coils, outside the workspace)."""
+    for coil in (*model.coil_names, *([BACKGROUND] if model.has_background else [])):
+        for name, src in model.doc.coils[coil].sources.items():
+            x, y, z = src.position
+            dx = max(abs(x - center[0]) - half_width, 0.0)
+            dy = max(abs(y - center[1]) - half_width, 0.0)
+            d = math.hypot(dx, dy, z - plane_z)
+            if d < pitch:
+                raise MpemError(
+                    f"{source}: {coil}.{name} lies {d * 1e3:.3g} mm from the workspace square "
+                    f"on z = {plane_z * 1e3:g} mm (less than the {pitch * 1e3:g} mm pitch): "
+                    "choose a plane or workspace clear of the coils' sources"
+                )
+
+
 def import_mpem(
     calibration: str | Path,
     out: str | Path,
@@ -277,7 +323,11 @@ def import_mpem(
             f"--pitch-mm {pitch * 1e3:g}: must divide the workspace's width "
             f"({2 * half_width * 1e3:g} mm) into 2 or more equal steps"
         )
+    _clear_of_sources(model, plane_z, center, half_width, pitch, str(calibration))
     maps = plane_maps(model, plane_z, center, half_width, pitch)
+    for name, fm in maps.items():
+        if not (np.all(np.isfinite(fm.B)) and np.all(np.isfinite(fm.dB))):
+            raise MpemError(f"{calibration}: {name}'s field on the plane is not finite")
     cal = Path(calibration)
     spec = MapSystemSpec(
         kind="maps",

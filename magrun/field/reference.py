@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from magrun import atomic
 from magrun.field.coils import LIMIT_KEYS, CoilSystem, CoilTypeSpec
+from magrun.yamlio import check_npz, safe_json
 
 MU0 = 4e-7 * np.pi  # T m / A; magpylib uses the CODATA value, 1e-10 relative difference
 DEFAULT_SHEETS = 12
@@ -138,11 +139,9 @@ class ReferenceMaps:
         try:
             # open the file ourselves: np.load leaks its handle on a corrupt archive
             with open(path, "rb") as fh:
-                if fh.read(4) != b"PK\x03\x04":  # an .npz is a zip archive
-                    raise ValueError("not an .npz archive (magrun field reference writes one)")
-                fh.seek(0)
+                check_npz(fh, "magrun field reference")
                 with np.load(fh, allow_pickle=False) as data:
-                    meta = json.loads(str(data["meta"]))
+                    meta = safe_json(str(data["meta"]), "its metadata")
                     names = sorted({k.split(".")[0] for k in data.files if k != "meta"})
                     maps = {
                         n: FieldMap(

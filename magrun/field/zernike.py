@@ -44,6 +44,7 @@ from magrun import atomic
 from magrun.field.coils import CoilSystem, CoilSystemSpec, MapSystemSpec
 from magrun.field.model import PlanarFieldModel, weighted_sum
 from magrun.field.polynomial import PolynomialField
+from magrun.yamlio import read_text_file, safe_json
 
 
 @dataclass(frozen=True)
@@ -402,7 +403,9 @@ class ZernikeFieldModel(PlanarFieldModel):
             return cls._of_system(CoilSystem.load(system))
         path = Path(path) if path is not None else default_model_path()
         try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
+            doc = safe_json(read_text_file(path), "")
+            if not isinstance(doc, dict):
+                raise ValueError("not a JSON object")
             if doc.get("format_version") != MODEL_FORMAT_VERSION:
                 raise ValueError(f"unsupported format_version {doc.get('format_version')!r}")
             kind = MapSystemSpec if doc["coils"].get("kind") == "maps" else CoilSystemSpec

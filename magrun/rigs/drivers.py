@@ -15,6 +15,7 @@ line protocol (:mod:`magrun.rigs.wire`) to the amplifier controller, or to
 
 from __future__ import annotations
 
+import hmac
 import socket
 from abc import ABC, abstractmethod
 from importlib.metadata import entry_points
@@ -24,12 +25,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from magrun.rigs.wire import (
+    SECRET_VARIABLE,
     VERSION,
     LineConnection,
     WireError,
     format_floats,
+    is_loopback,
+    is_nonce,
+    new_nonce,
     parse_floats,
     parse_limits,
+    proof,
 )
 
 FloatArray = NDArray[np.float64]
@@ -104,20 +110,30 @@ class CoilDriver(ABC):
         return None
 
 
-class TcpLineDriver(CoilDriver):
-    """The line protocol of :mod:`magrun.rigs.wire` over TCP: ``tcp://host:port``."""
+#: the largest camera frame a rig may announce, bytes (a 4K RGB frame is 25 MB)
+MAX_FRAME_BYTES = 64 << 20
 
-    def __init__(self, host: str, port: int, timeout_s: float = 2.0) -> None:
+
+class TcpLineDriver(CoilDriver):
+    """The line protocol of :mod:`magrun.rigs.wire` over TCP: ``tcp://host:port``.
+
+    With a shared ``secret`` it authenticates first, both ways (wire, "Security model");
+    without one it drives a rig on loopback only."""
+
+    def __init__(
+        self, host: str, port: int, timeout_s: float = 2.0, secret: bytes | None = None
+    ) -> None:
         self.host, self.port, self.timeout_s = host, port, timeout_s
+        self.secret = secret
         self._conn: LineConnection | None = None
         self._seq = 0
 
     @classmethod
-    def from_url(cls, url: str) -> TcpLineDriver:
+    def from_url(cls, url: str, secret: bytes | None = None) -> TcpLineDriver:
         parts = urlsplit(url)
         if parts.scheme != "tcp" or not parts.hostname or parts.port is None:
             raise DriverError(f"{url!r}: expected tcp://host:port")
-        return cls(parts.hostname, parts.port)
+        return cls(parts.hostname, parts.port, secret=secret)
 
     @property
     def conn(self) -> LineConnection:
@@ -126,12 +142,20 @@ class TcpLineDriver(CoilDriver):
         return self._conn
 
     def open(self, watchdog_s: float) -> None:
+        if self.secret is None and not is_loopback(self.host):
+            raise DriverError(
+                f"the rig at {self.host}:{self.port} is not on this machine: give its shared "
+                f"secret (--rig-secret FILE, or {SECRET_VARIABLE}); magrun drives a rig "
+                "elsewhere only once both sides have proved they hold it"
+            )
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
         except OSError as exc:
             raise DriverError(f"cannot reach the rig at {self.host}:{self.port}: {exc}") from exc
         self._conn = LineConnection(sock, self.timeout_s)
         try:
+            if self.secret is not None:
+                self._authenticate(self.secret)
             hello = self.conn.request(f"HELLO {VERSION}", "OK")
             if len(hello) != 6 or hello[0] != "magrun-rig" or int(hello[1]) != VERSION:
                 raise DriverError(f"the rig speaks {' '.join(hello)!r}, not magrun-rig {VERSION}")
@@ -148,10 +172,26 @@ class TcpLineDriver(CoilDriver):
             self.conn.request(f"WATCHDOG {watchdog_s * 1e3!r}", "OK")
         except (WireError, ValueError) as exc:
             self.close()
-            raise DriverError(f"rig at {self.host}:{self.port}: {exc}") from exc
+            hint = (
+                f" (give its shared secret: --rig-secret FILE, or {SECRET_VARIABLE})"
+                if "auth required" in str(exc) else ""
+            )  # fmt: skip
+            raise DriverError(f"rig at {self.host}:{self.port}: {exc}{hint}") from exc
         except DriverError as exc:
             self.close()
             raise type(exc)(f"rig at {self.host}:{self.port}: {exc}") from exc
+
+    def _authenticate(self, secret: bytes) -> None:
+        """Mutual challenge–response (wire, "Security model"); DriverError if the rig's
+        proof is wrong (a rig that does not hold the secret)."""
+        fields = self.conn.request("CHALLENGE", "NONCE")
+        if len(fields) != 1 or not is_nonce(fields[0]):
+            raise WireError(f"NONCE {' '.join(fields)!r} is not a 128-bit hex nonce")
+        server, client = fields[0], new_nonce()
+        reply = self.conn.request(f"AUTH {client} {proof(secret, 'client', server, client)}", "OK")
+        expected = proof(secret, "server", server, client)
+        if len(reply) != 1 or not hmac.compare_digest(reply[0], expected):
+            raise DriverError("the rig did not prove that it holds the shared secret")
 
     def _error(self, what: str, exc: Exception) -> DriverError:
         return DriverError(f"rig at {self.host}:{self.port}: {what}: {exc}")
@@ -195,7 +235,14 @@ class TcpLineDriver(CoilDriver):
             if "dropped" in str(exc):
                 return None
             raise self._error("GRAB failed", exc) from exc
-        t, h, w, c, n = float(header[0]), *(int(v) for v in header[1:5])
+        try:
+            t, h, w, c, n = float(header[0]), *(int(v) for v in header[1:5])
+        except (ValueError, IndexError) as exc:
+            raise self._error("GRAB answered", ValueError(" ".join(header))) from exc
+        if not (0 < n <= MAX_FRAME_BYTES and n == h * w * c and c in (1, 3, 4)):
+            raise self._error(
+                "GRAB", ValueError(f"a frame of {h}x{w}x{c} in {n} bytes is not one magrun takes")
+            )
         try:
             data = self.conn.read_bytes(n)
         except WireError as exc:
@@ -214,11 +261,12 @@ class TcpLineDriver(CoilDriver):
         self._conn = None
 
 
-def load_driver(url: str) -> CoilDriver:
-    """The driver for ``url``: ``tcp://…`` is magrun's own; other schemes are plugins."""
+def load_driver(url: str, secret: bytes | None = None) -> CoilDriver:
+    """The driver for ``url``: ``tcp://…`` is magrun's own (authenticating with ``secret``
+    where given); other schemes are plugins."""
     scheme = urlsplit(url).scheme
     if scheme == "tcp":
-        return TcpLineDriver.from_url(url)
+        return TcpLineDriver.from_url(url, secret)
     found = {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
     if scheme not in found:
         known = ", ".join(sorted({"tcp", *found})) or "tcp"

@@ -15,7 +15,9 @@ anything. The watchdog is armed from a client's first byte (:data:`DEFAULT_WATCH
 cannot be switched off: ``WATCHDOG`` takes 0 < ms ≤ :data:`MAX_WATCHDOG_S` · 1000, anything else
 is answered ``ERR``. One client at a time (a second one gets ``ERR busy``); a client that
 sends nothing for ``idle_timeout_s`` is disconnected, which trips the watchdog. A malformed
-request is answered ``ERR``; it never ends the serving thread.
+request is answered ``ERR``; it never ends the serving thread. With a shared ``secret``
+every client must authenticate first (:mod:`magrun.rigs.wire`, "Security model"); without
+one the emulator listens on loopback only.
 
 Faults for tests: ``drop_every`` makes every n-th ``GRAB`` fail (``ERR frame dropped``), as
 a camera that misses frames; :meth:`RigEmulator.disconnect_client` breaks the connection.
@@ -24,6 +26,7 @@ a camera that misses frames; :meth:`RigEmulator.disconnect_client` breaks the co
 from __future__ import annotations
 
 import contextlib
+import hmac
 import math
 import socket
 import threading
@@ -39,8 +42,12 @@ from magrun.rigs.wire import (
     NotAscii,
     WireError,
     format_floats,
+    is_loopback,
+    is_nonce,
     limits_text,
+    new_nonce,
     parse_floats,
+    proof,
 )
 
 #: the watchdog's timeout from a client's first byte until it sends ``WATCHDOG``, s
@@ -60,7 +67,16 @@ class RigEmulator:
         step_s: float = 0.002,
         drop_every: int = 0,
         idle_timeout_s: float = 30.0,
+        secret: bytes | None = None,
     ) -> None:
+        if secret is None and not is_loopback(host):
+            raise ValueError(
+                f"listening on {host} (not loopback) needs a shared secret (--secret FILE): "
+                "anyone who can reach the port could drive the coils"
+            )
+        self.secret = secret
+        self._authenticated = secret is None
+        self._nonce: str | None = None
         self.rig = rig
         self.step_s = step_s
         self.idle_timeout_s = idle_timeout_s
@@ -159,15 +175,20 @@ class RigEmulator:
                 sock, _ = self._server.accept()
             except (TimeoutError, OSError):
                 continue
-            if self._client is not None:
-                LineConnection(sock).send_line("ERR busy: one client at a time")
+            with self._lock:
+                busy = self._client is not None
+                if not busy:
+                    # a client that sends nothing for idle_timeout_s is let go (it would hold
+                    # the slot); the watchdog is armed from the first byte, default timeout
+                    client = self._client = LineConnection(sock, timeout=self.idle_timeout_s)
+                    self.watchdog_s, self.last_set = DEFAULT_WATCHDOG_S, self.now()
+                    self._authenticated, self._nonce = self.secret is None, None
+            if busy:
+                with contextlib.suppress(WireError):
+                    LineConnection(sock).send_line("ERR busy: one client at a time")
                 sock.close()
                 continue
-            # a client that sends nothing for idle_timeout_s is let go (it would hold the slot)
-            self._client = LineConnection(sock, timeout=self.idle_timeout_s)
-            with self._lock:  # armed from the first byte, with the default timeout
-                self.watchdog_s, self.last_set = DEFAULT_WATCHDOG_S, self.now()
-            th = threading.Thread(target=self._serve, args=(self._client,), daemon=True)
+            th = threading.Thread(target=self._serve, args=(client,), daemon=True)
             th.start()
 
     def _serve(self, conn: LineConnection) -> None:
@@ -181,17 +202,55 @@ class RigEmulator:
                 if not line:
                     continue
                 if line.split()[0] == "BYE":
+                    self._release(conn)  # free before the reply: a client may reconnect at once
                     conn.send_line("OK")
                     break
+                if not self._authenticated:
+                    if not self._authenticate(conn, line):
+                        break  # a wrong proof: the connection is closed
+                    continue
                 self._handle(conn, line)
         except WireError:
             pass  # the client went away, or sent nothing for idle_timeout_s
         finally:
-            with self._lock:
-                if self.state == "running":
-                    self._trip(self.now())  # no client, no commands: ramp down now
+            self._release(conn)
             conn.close()
-            self._client = None
+
+    def _release(self, conn: LineConnection) -> None:
+        """Free the slot ``conn`` holds; no client, no commands: ramp down now where
+        currents are commanded (0 A needs no ramp)."""
+        with self._lock:
+            if self._client is conn:
+                if self.state == "running" and np.any(self.rig.target):
+                    self._trip(self.now())
+                self._client = None
+
+    def _authenticate(self, conn: LineConnection, line: str) -> bool:
+        """Handle a request before authentication (wire, "Security model"): ``CHALLENGE``
+        and ``AUTH``; anything else is answered ``ERR auth required``. False: close."""
+        cmd, *args = line.split()
+        if cmd == "CHALLENGE":
+            self._nonce = new_nonce()
+            conn.send_line(f"NONCE {self._nonce}")
+            return True
+        if cmd != "AUTH":
+            conn.send_line("ERR auth required: CHALLENGE, then AUTH (this rig has a secret)")
+            return True
+        assert self.secret is not None
+        server = self._nonce
+        self._nonce = None  # one AUTH per challenge
+        if server is None or len(args) != 2 or not is_nonce(args[0]):
+            self._release(conn)
+            conn.send_line("ERR AUTH needs a CHALLENGE first, then AUTH <nonce> <proof>")
+            return False
+        expected = proof(self.secret, "client", server, args[0])
+        if not hmac.compare_digest(expected, args[1]):
+            self._release(conn)
+            conn.send_line("ERR auth failed")
+            return False
+        self._authenticated = True
+        conn.send_line(f"OK {proof(self.secret, 'server', server, args[0])}")
+        return True
 
     def _currents(self) -> str:
         return format_floats(self.rig.target)
@@ -258,8 +317,14 @@ class RigEmulator:
             return f"STATUS {self.state} {t!r} {format_floats(rig.driven)}"
         if cmd == "RESET":
             pose = parse_floats(args, "RESET")
+            half = rig.coils.workspace_half_width
             if len(pose) != 3 or not np.all(np.isfinite(pose)):
                 return "ERR RESET needs a finite pose: x y theta (m, m, rad)"
+            if max(abs(pose[0]), abs(pose[1])) > half or abs(pose[2]) > 1e3:
+                return (
+                    f"ERR RESET needs a pose in the workspace: |x|, |y| <= {half!r} m, "
+                    "|theta| <= 1000 rad"
+                )
             rig.reset(pose)
             self._sim_t = t
             self.state, self.last_set = "running", t

@@ -17,6 +17,8 @@ hardware or ``magrun rig-emulator``, which serves the simulated plant and camera
     GRAB                             FRAME <t> <h> <w> <c> <nbytes>, then nbytes of uint8 RGB
     POSE                             POSE <t> <x> <y> <θ>     the true pose (emulator only)
     BYE                              OK, then the controller closes the connection
+    CHALLENGE                        NONCE <server nonce>     (a rig with a shared secret)
+    AUTH <client nonce> <proof>      OK <its proof>           (ERR, then closed, if wrong)
     anything it cannot do            ERR <message>
 
 ``<t>`` is the controller's clock, s. ``ACK`` returns the currents the amplifiers are driving
@@ -34,18 +36,109 @@ connection trips it at once; so does a client that sends nothing for the control
 timeout, which is then disconnected (one client at a time: an idle one must not hold the
 slot). That is what keeps the coils safe when magrun's loop stalls or
 dies: nothing on magrun's side has to work for it.
+
+Security model
+--------------
+The protocol carries no encryption: it is for a lab's own network, and on one machine
+(loopback) it needs nothing else. A controller given a shared secret (a file of at least
+:data:`MIN_SECRET_BYTES` bytes, readable by its owner only) answers every request but
+``CHALLENGE``, ``AUTH`` and ``BYE`` with ``ERR auth required`` until the client proves it
+holds the secret, and the client checks the controller's proof in turn (mutual
+challenge–response, HMAC-SHA256, :func:`proof`; fresh 128-bit nonces on both sides, so a
+recorded exchange cannot be replayed)::
+
+    CHALLENGE                 →  NONCE <sn>
+    AUTH <cn> <proof(client)> →  OK <proof(server)>
+    proof(role) = HMAC-SHA256(secret, "magrun-rig <version> <role> <sn> <cn>"), hex
+
+A wrong proof is answered ``ERR`` and the connection closed. ``magrun rig-emulator`` refuses
+to listen on anything but loopback without a secret, and magrun's driver refuses to drive a
+rig that is not on loopback without one. The secret authenticates the peers, not the
+traffic: on a network others can write to, run the protocol inside a VPN or SSH tunnel.
+Whatever the peer, magrun's limits are its own (:mod:`magrun.rigs.hardware`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
+import ipaddress
+import os
 import socket
+import stat
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
 VERSION = 1
 FloatArray = NDArray[np.float64]
+
+
+#: the shortest shared secret a rig or driver takes, bytes (128 bits)
+MIN_SECRET_BYTES = 16
+#: the longest secret file read, bytes
+MAX_SECRET_BYTES = 4096
+#: the environment variable naming the secret file (the CLI's --secret / --rig-secret)
+SECRET_VARIABLE = "MAGRUN_RIG_SECRET_FILE"
+
+
+def read_secret(path: str | Path) -> bytes:
+    """The shared secret in the file ``path`` (surrounding whitespace stripped), or a
+    ``ValueError`` saying why not: not a regular file, readable by group or others (like an
+    SSH key: chmod 600), shorter than :data:`MIN_SECRET_BYTES` or longer than
+    :data:`MAX_SECRET_BYTES`."""
+    p = Path(path)
+    try:
+        info = p.stat()
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{p}: the rig secret is not a regular file")
+        if info.st_mode & 0o077:
+            raise ValueError(
+                f"{p}: the rig secret is readable by others (mode {stat.S_IMODE(info.st_mode):o}); "
+                "chmod 600 it"
+            )
+        with p.open("rb") as fh:
+            data = fh.read(MAX_SECRET_BYTES + 1).strip()
+    except OSError as exc:
+        raise ValueError(f"{p}: cannot read the rig secret: {exc}") from exc
+    if not MIN_SECRET_BYTES <= len(data) <= MAX_SECRET_BYTES:
+        raise ValueError(
+            f"{p}: a rig secret has {MIN_SECRET_BYTES} to {MAX_SECRET_BYTES} bytes, this one "
+            f"{len(data)} (make one with: head -c 32 /dev/urandom | base64 > FILE)"
+        )
+    return data
+
+
+def proof(secret: bytes, role: str, server_nonce: str, client_nonce: str) -> str:
+    """The HMAC-SHA256 proof that ``role`` (``client`` or ``server``) holds ``secret``, for
+    this pair of nonces, in hex (module doc, "Security model")."""
+    message = f"magrun-rig {VERSION} {role} {server_nonce} {client_nonce}".encode("ascii")
+    return hmac.new(secret, message, hashlib.sha256).hexdigest()
+
+
+def new_nonce() -> str:
+    """128 random bits, hex."""
+    return os.urandom(16).hex()
+
+
+def is_nonce(text: str) -> bool:
+    return len(text) == 32 and all(c in "0123456789abcdef" for c in text)
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (an address or a name) is this machine only: every address it
+    resolves to is a loopback address. A name that does not resolve is not."""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, None)
+    except OSError:
+        return False
+    return bool(infos) and all(ipaddress.ip_address(i[4][0]).is_loopback for i in infos)
 
 
 class WireError(ConnectionError):

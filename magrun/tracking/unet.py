@@ -16,6 +16,7 @@ a pickle, so loading them runs no code.
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,8 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import nn
+
+from magrun.yamlio import check_npz, safe_json
 
 FloatArray = NDArray[np.float64]
 
@@ -158,11 +161,49 @@ def save_weights(model: KeypointUNet, path: str | Path, meta: dict[str, Any]) ->
     tmp.replace(path)
 
 
+#: the most levels and channels per level a weights file may declare (the shipped UNet has
+#: 4 levels of 8–64): a bound on what a hostile file can make magrun allocate
+MAX_LEVELS, MAX_WIDTH = 8, 1024
+
+
 def load_weights(path: str | Path) -> tuple[KeypointUNet, dict[str, Any]]:
-    """A model (eval mode) and its metadata from a file written by :func:`save_weights`."""
-    with np.load(path, allow_pickle=False) as data:
-        meta = json.loads(str(data["meta"]))
-        model = KeypointUNet(tuple(meta["widths"]))
-        state = {k: torch.from_numpy(data[k].copy()) for k in data.files if k != "meta"}
+    """A model (eval mode) and its metadata from a file written by :func:`save_weights`.
+
+    Raises ``ValueError`` naming what is wrong for anything else: not an ``.npz`` archive,
+    pickled arrays, metadata that is not a JSON object with ``widths`` (1 to
+    :data:`MAX_LEVELS` integers in 1 … :data:`MAX_WIDTH`), arrays that do not fit the model."""
+    try:
+        with open(path, "rb") as fh:  # np.load leaks its handle on a corrupt archive
+            check_npz(fh, "magrun tracker train")
+            with np.load(fh, allow_pickle=False) as data:
+                if "meta" not in data.files:
+                    raise ValueError("no `meta` array (magrun tracker train writes one)")
+                meta = safe_json(str(data["meta"]), "its metadata")
+                widths = meta.get("widths") if isinstance(meta, dict) else None
+                if not (
+                    isinstance(widths, list)
+                    and 1 <= len(widths) <= MAX_LEVELS
+                    and all(type(w) is int and 1 <= w <= MAX_WIDTH for w in widths)
+                ):
+                    raise ValueError(
+                        f"its metadata's `widths` must be 1 to {MAX_LEVELS} integers in "
+                        f"1 … {MAX_WIDTH}"
+                    )
+                model = KeypointUNet(tuple(widths))
+                want = model.state_dict()
+                state = {}
+                for name in data.files:
+                    if name == "meta":
+                        continue
+                    if name not in want or data[name].shape != tuple(want[name].shape):
+                        raise ValueError(f"array {name!r} does not fit a UNet of {widths}")
+                    if not np.all(np.isfinite(data[name])):
+                        raise ValueError(f"array {name!r} holds NaN or infinite values")
+                    state[name] = torch.from_numpy(data[name].copy())
+                missing = sorted(set(want) - set(state))
+                if missing:
+                    raise ValueError(f"arrays missing: {', '.join(missing[:5])}")
+    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"not a readable weights file: {exc}") from exc
     model.load_state_dict(state)
     return model.eval(), meta
