@@ -125,10 +125,17 @@ def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
     parts = tuple(key.strip().split("."))
     if not sep or not all(parts):
         raise ValueError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. a.b=1")
+    shown = text if len(text) <= 80 else text[:77] + "..."
+    if len(value) > MAX_YAML_CHARS:
+        raise ValueError(f"--set {shown!r}: the value is longer than {MAX_YAML_CHARS:,} characters")
     try:
         return parts, yaml.safe_load(value) if value.strip() else ""
     except yaml.YAMLError as exc:
-        raise ValueError(f"--set {text!r}: the value is not valid YAML") from exc
+        raise ValueError(f"--set {shown!r}: the value is not valid YAML") from exc
+    except RecursionError as exc:  # PyYAML recurses once per nesting level
+        raise ValueError(f"--set {shown!r}: the value is nested too deeply") from exc
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise ValueError(f"--set {shown!r}: the value is not valid YAML: {exc}") from exc
 
 
 def _apply_overrides(data: Any, overrides: list[tuple[str, tuple[str, ...], Any]]) -> Any:

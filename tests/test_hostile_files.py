@@ -477,3 +477,20 @@ def test_a_killed_resimulations_folder_is_taken_by_the_next(recorded: Path, tmp_
     assert out.is_file()
     assert out.with_suffix(".rrd").is_file()
     assert not (tmp_path / ".again.mcap.part").exists()
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("[" * 5000 + "]" * 5000, "the value is nested too deeply"),
+        ("9" * 5000, "Exceeds the limit (4300 digits)"),
+        ("[unclosed", "the value is not valid YAML"),
+    ],
+)
+def test_set_values_the_yaml_parser_chokes_on(tmp_path: Path, value: str, message: str) -> None:
+    from synthetic import TINY
+
+    code, out = _invoke("run", TINY, "--set", f"trials={value}", "--out", tmp_path)
+    assert code == 2, out
+    assert message in out, out
+    assert len(out) < 1000  # the value is cut in the message, not echoed whole
