@@ -347,7 +347,7 @@ def system_of(protocol: Protocol) -> CoilSystem:
 
 def check_system(protocol: Protocol) -> CoilSystem:
     """What every trial of ``protocol`` is built from, built once and checked, before a run
-    folder is made (``magrun validate`` runs it too); a :class:`RunError` names the problem:
+    folder is made (``magrun run``); a :class:`RunError` names the problem:
 
     - the system folder's description, maps and fitted models, read as a trial reads them
       (a damaged map, a model fitted to another system);

@@ -257,9 +257,6 @@ def test_a_damaged_system_folder_is_refused_before_anything_runs(
         "trajectory: {kind: s_curve, size_mm: 4, speed_mm_s: 2}\nmethods: [proposed]\n"
         "trials: 1\nduration_s: 1\n"
     )
-    code, out = _invoke("validate", protocol)
-    assert code == 2, out
-    assert DAMAGE[case] in out, out
     code, out = _invoke("run", protocol, "--out", tmp_path / "out")
     assert code == 2, out
     assert DAMAGE[case] in out, out
@@ -394,9 +391,10 @@ def test_a_trajectory_leaving_the_workspace_is_refused(tmp_path: Path) -> None:
         "name: p\nrobot: magnet\ntrajectory: {kind: s_curve, size_mm: 300, speed_mm_s: 3}\n"
         "methods: [proposed]\ntrials: 1\n"
     )
-    code, out = _invoke("validate", protocol)
+    code, out = _invoke("run", protocol, "--out", tmp_path / "out")
     assert code == 2, out
     assert "trajectory: leaves the coils' workspace at" in out, out
+    assert not (tmp_path / "out" / "p").exists()
 
 
 @pytest.mark.parametrize(
