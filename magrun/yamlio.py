@@ -22,6 +22,9 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
+if typing.TYPE_CHECKING:
+    from numpy.typing import NDArray
+
 M = TypeVar("M", bound=BaseModel)
 
 #: problems listed for one document: locating each walks the document, so a file of 50,000
@@ -287,6 +290,24 @@ def check_npz(fh: typing.BinaryIO, written_by: str, limit: int = MAX_NPZ_BYTES) 
     if size > limit:
         raise ValueError(f"its arrays unpack to {size:,} bytes, more than the {limit:,} allowed")
     fh.seek(0)
+
+
+def read_npz(path: str | Path, written_by: str) -> dict[str, NDArray[Any]]:
+    """Every array of the ``.npz`` archive at ``path``, read into memory after
+    :func:`check_npz` (a zip archive of bounded size) and without pickles; ``written_by``
+    says which command writes one. Anything unreadable raises ``ValueError`` saying why."""
+    import zipfile
+
+    import numpy as np
+
+    try:
+        # open the file ourselves: np.load leaks its handle on a corrupt archive
+        with open(path, "rb") as fh:
+            check_npz(fh, written_by)
+            with np.load(fh, allow_pickle=False) as npz:
+                return {name: np.asarray(npz[name]) for name in npz.files}
+    except (OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"not a readable .npz archive: {exc}") from exc
 
 
 def parse_yaml_model(

@@ -53,17 +53,9 @@ def read_figure_data(path: str | Path) -> dict[str, NDArray[np.float64]]:
     checked: a bounded ``.npz`` of finite float arrays, per coil type ``c`` ``c_orders``,
     ``c_mae_mT``, ``c_r2`` of one length, ``c_x_mm`` and ``c_y_mm`` (at least 2 each) and
     ``c_field_mT``, ``c_error_mT`` of shape (len x, len y). ``ValueError`` says what is not."""
-    import zipfile
+    from magrun.yamlio import read_npz
 
-    from magrun.yamlio import check_npz
-
-    try:
-        with open(path, "rb") as fh:
-            check_npz(fh, "magrun field fit")
-            with np.load(fh, allow_pickle=False) as npz:
-                data = {k: np.asarray(npz[k]) for k in npz.files}
-    except (OSError, EOFError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"not a readable .npz archive: {exc}") from exc
+    data = read_npz(path, "magrun field fit")
     types = sorted(k[: -len("_orders")] for k in data if k.endswith("_orders"))
     if not types:
         raise ValueError(

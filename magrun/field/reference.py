@@ -27,7 +27,6 @@ round-off are both below 1e-8 relative at the scale lengths (mm) of these coils.
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from scipy.spatial.transform import Rotation
 
 from magrun import atomic
 from magrun.field.coils import LIMIT_KEYS, CoilSystem, CoilTypeSpec
-from magrun.yamlio import check_npz, safe_json
+from magrun.yamlio import read_npz, safe_json
 
 MU0 = 4e-7 * np.pi  # T m / A; magpylib uses the CODATA value, 1e-10 relative difference
 DEFAULT_SHEETS = 12
@@ -137,20 +136,16 @@ class ReferenceMaps:
         if path is None:
             path = default_reference_path()
         try:
-            # open the file ourselves: np.load leaks its handle on a corrupt archive
-            with open(path, "rb") as fh:
-                check_npz(fh, "magrun field reference")
-                with np.load(fh, allow_pickle=False) as data:
-                    meta = safe_json(str(data["meta"]), "its metadata")
-                    names = sorted({k.split(".")[0] for k in data.files if k != "meta"})
-                    maps = {
-                        n: FieldMap(
-                            x=data[f"{n}.x"], y=data[f"{n}.y"], B=data[f"{n}.B"],
-                            dB=data[f"{n}.dB"],
-                        )
-                        for n in names
-                    }  # fmt: skip
-        except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            data = read_npz(path, "magrun field reference")
+            meta = safe_json(str(data["meta"]), "its metadata")
+            names = sorted({k.split(".")[0] for k in data if k != "meta"})
+            maps = {
+                n: FieldMap(
+                    x=data[f"{n}.x"], y=data[f"{n}.y"], B=data[f"{n}.B"], dB=data[f"{n}.dB"]
+                )
+                for n in names
+            }
+        except (KeyError, ValueError) as exc:
             raise ValueError(f"{path}: not a readable magrun reference-map file: {exc}") from exc
         return cls(maps=maps, meta=meta)
 

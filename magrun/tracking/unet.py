@@ -16,7 +16,6 @@ a pickle, so loading them runs no code.
 from __future__ import annotations
 
 import json
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,7 @@ import torch
 from numpy.typing import NDArray
 from torch import nn
 
-from magrun.yamlio import check_npz, safe_json
+from magrun.yamlio import read_npz, safe_json
 
 FloatArray = NDArray[np.float64]
 
@@ -173,37 +172,34 @@ def load_weights(path: str | Path) -> tuple[KeypointUNet, dict[str, Any]]:
     pickled arrays, metadata that is not a JSON object with ``widths`` (1 to
     :data:`MAX_LEVELS` integers in 1 … :data:`MAX_WIDTH`), arrays that do not fit the model."""
     try:
-        with open(path, "rb") as fh:  # np.load leaks its handle on a corrupt archive
-            check_npz(fh, "magrun tracker train")
-            with np.load(fh, allow_pickle=False) as data:
-                if "meta" not in data.files:
-                    raise ValueError("no `meta` array (magrun tracker train writes one)")
-                meta = safe_json(str(data["meta"]), "its metadata")
-                widths = meta.get("widths") if isinstance(meta, dict) else None
-                if not (
-                    isinstance(widths, list)
-                    and 1 <= len(widths) <= MAX_LEVELS
-                    and all(type(w) is int and 1 <= w <= MAX_WIDTH for w in widths)
-                ):
-                    raise ValueError(
-                        f"its metadata's `widths` must be 1 to {MAX_LEVELS} integers in "
-                        f"1 … {MAX_WIDTH}"
-                    )
-                model = KeypointUNet(tuple(widths))
-                want = model.state_dict()
-                state = {}
-                for name in data.files:
-                    if name == "meta":
-                        continue
-                    if name not in want or data[name].shape != tuple(want[name].shape):
-                        raise ValueError(f"array {name!r} does not fit a UNet of {widths}")
-                    if not np.all(np.isfinite(data[name])):
-                        raise ValueError(f"array {name!r} holds NaN or infinite values")
-                    state[name] = torch.from_numpy(data[name].copy())
-                missing = sorted(set(want) - set(state))
-                if missing:
-                    raise ValueError(f"arrays missing: {', '.join(missing[:5])}")
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        data = read_npz(path, "magrun tracker train")
+    except ValueError as exc:
         raise ValueError(f"not a readable weights file: {exc}") from exc
+    if "meta" not in data:
+        raise ValueError("no `meta` array (magrun tracker train writes one)")
+    meta = safe_json(str(data["meta"]), "its metadata")
+    widths = meta.get("widths") if isinstance(meta, dict) else None
+    if not (
+        isinstance(widths, list)
+        and 1 <= len(widths) <= MAX_LEVELS
+        and all(type(w) is int and 1 <= w <= MAX_WIDTH for w in widths)
+    ):
+        raise ValueError(
+            f"its metadata's `widths` must be 1 to {MAX_LEVELS} integers in 1 … {MAX_WIDTH}"
+        )
+    model = KeypointUNet(tuple(widths))
+    want = model.state_dict()
+    state = {}
+    for name, array in data.items():
+        if name == "meta":
+            continue
+        if name not in want or array.shape != tuple(want[name].shape):
+            raise ValueError(f"array {name!r} does not fit a UNet of {widths}")
+        if not np.all(np.isfinite(array)):
+            raise ValueError(f"array {name!r} holds NaN or infinite values")
+        state[name] = torch.from_numpy(array.copy())
+    missing = sorted(set(want) - set(state))
+    if missing:
+        raise ValueError(f"arrays missing: {', '.join(missing[:5])}")
     model.load_state_dict(state)
     return model.eval(), meta
