@@ -1,7 +1,9 @@
-"""Fuzzing the readers of recordings, manifests and calibrations, and the rig's line protocol.
+"""Fuzzing the readers of recordings, manifests, calibrations and coil-system folders, and the
+rig's line protocol.
 
 Hypothesis draws the inputs: a real recording cut anywhere or with bytes overwritten,
-manifests of any JSON shape, MPEM calibrations of any YAML shape and number, and request
+manifests of any JSON shape, MPEM calibrations of any YAML shape and number, an imported
+system folder whose description, maps and fitted models are drawn or damaged, and request
 lines of any bytes to the rig emulator. Each reader either returns or raises its one
 documented error, naming the file; the emulator answers every line and keeps serving, and
 drives no current nobody commanded. Bounded: a few hundred examples each, no deadline.
@@ -10,17 +12,23 @@ drives no current nobody commanded. Bounded: a few hundred examples each, no dea
 from __future__ import annotations
 
 import json
+import shutil
 import socket
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+import yaml
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from synthetic import record_tiny
 
 from analysis.load import RecordingError, find_recordings, read_recording
+from magrun.field.coils import CoilSystem
+from magrun.field.grid import ChannelGrid
+from magrun.field.lut import LookupTableFieldModel
 from magrun.field.mpem import MAX_COEFFICIENT, MAX_SOURCE_POSITION_M, MpemError, MpemModel
+from magrun.field.zernike import ZernikeFieldModel
 from magrun.recover import recover
 from magrun.rigs.emulator import RigEmulator
 from magrun.rigs.sim import SimRig
@@ -154,6 +162,66 @@ def test_mpem_files_of_anything_are_read_or_named(tmp_path: Path, text: str) -> 
             assert np.all(np.abs(src.position) <= MAX_SOURCE_POSITION_M)
             assert np.all(np.abs(src.b_coeff) <= MAX_COEFFICIENT)
             assert abs(np.linalg.norm(src.direction) - 1) < 1e-12
+
+
+SYSTEM = Path(__file__).parents[1] / "systems" / "octomag"
+SYSTEM_KEYS = ["workspace_half_width_mm", "max_current_a", "max_slew_rate_a_per_s", "kind",
+               "zernike_disk_radius_mm", "background", "channels", "channel_limits"]  # fmt: skip
+SYSTEM_VALUES = ["[Coil_0]", "{Coil_0: {max_current_a: 1e400}}", "[a, a]", "lut", "maps"]
+
+
+@st.composite
+def system_folders(draw: st.DrawFn) -> dict[str, bytes | None]:
+    """Files to replace in a copy of an imported system folder (None: delete the file):
+    settings of system.yaml drawn from hostile numbers and shapes, the maps and the fitted
+    models cut or overwritten, or swapped for any JSON."""
+    out: dict[str, bytes | None] = {}
+    described = yaml.safe_load((SYSTEM / "system.yaml").read_text())
+    drawn = draw(st.lists(st.sampled_from(SYSTEM_KEYS), max_size=3, unique=True))
+    lines = [yaml.safe_dump({k: v for k, v in described.items() if k not in drawn})]
+    lines += [f"{k}: {draw(numbers | st.sampled_from(SYSTEM_VALUES))}" for k in drawn]
+    out["system.yaml"] = "\n".join(lines).encode()
+    for name in ("reference_maps.npz", "zernike_model.json", "zernike_fit.json"):
+        match draw(st.sampled_from(["keep"] * 6 + ["damage", "json", "delete"])):
+            case "damage":
+                out[name] = draw(damaged((SYSTEM / name).read_bytes()))
+            case "json":
+                out[name] = json.dumps(draw(json_values)).encode()
+            case "delete":
+                out[name] = None
+    return out
+
+
+@settings(max_examples=100, deadline=None)
+@given(files=system_folders())
+def test_system_folders_of_anything_are_loaded_or_named(
+    tmp_path_factory: pytest.TempPathFactory, files: dict[str, bytes | None]
+) -> None:
+    """What ``magrun run`` reads of a system folder before its first trial either loads, with
+    finite positive limits, or raises a ``ValueError`` naming the folder or its file."""
+    folder = tmp_path_factory.mktemp("system")
+    shutil.copytree(SYSTEM, folder, dirs_exist_ok=True)
+    for name, content in files.items():
+        if content is None:
+            (folder / name).unlink()
+        else:
+            (folder / name).write_bytes(content)
+    try:
+        coils = CoilSystem.load(folder)
+        ChannelGrid.load(coils)
+        ZernikeFieldModel.load(system=folder)
+        LookupTableFieldModel.load(system=folder)
+    except ValueError as exc:  # the one allowed failure, naming where
+        message = str(exc)
+    else:
+        message = None
+    event("refused" if message else "loaded")
+    if message is not None:
+        assert str(folder) in message
+        return
+    limits = np.append(coils.max_current, coils.max_slew_rate)
+    assert np.all(np.isfinite(limits))
+    assert np.all(limits > 0)
 
 
 @pytest.fixture(scope="module")
