@@ -38,6 +38,8 @@ KEYS = ("protocol", "method", *CONDITIONS, "trial")
 #: ``trial`` metadata values that are text (the rest are JSON)
 _TEXT_KEYS = {"protocol", "method", "rig", "robot", "feedback", "critical_boundary", "plant"}
 #: what a damaged file's error adds (a recorder killed mid-trial leaves a file without index)
+#: far beyond any run's manifest (a few hundred bytes a trial)
+MAX_MANIFEST_BYTES = 256_000_000
 RECOVER_HINT = (
     "the file is truncated or damaged (a recorder that died leaves it unindexed); "
     "`magrun recover IN.mcap OUT.mcap` rebuilds a readable copy"
@@ -134,8 +136,8 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
         The file is missing, truncated, corrupt or not a magrun recording.
     """
     path = Path(path)
-    if not path.is_file():
-        raise RecordingError(path, "no such recording")
+    if not path.is_file():  # a FIFO would wait for a writer for ever
+        raise RecordingError(path, "not a regular file" if path.exists() else "no such recording")
     topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
     if with_images:
         topics.append("/camera/image")
@@ -333,6 +335,8 @@ def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]
     if root.is_file():
         return [(root, None)]
     if not root.is_dir():
+        if root.exists():  # a FIFO, a socket, a device
+            raise RecordingError(root, "not a regular file or a folder")
         raise FileNotFoundError(f"{root}: no such file or folder")
     manifests = sorted([root / "manifest.json"] if (root / "manifest.json").is_file() else [])
     if not manifests:
@@ -340,6 +344,8 @@ def find_recordings(root: str | Path) -> list[tuple[Path, dict[str, Any] | None]
     found: list[tuple[Path, dict[str, Any] | None]] = []
     listed: set[Path] = set()
     for mf in manifests:
+        if not mf.is_file() or mf.stat().st_size > MAX_MANIFEST_BYTES:  # a FIFO waits for ever
+            raise RecordingError(mf, f"not a regular file of at most {MAX_MANIFEST_BYTES:,} bytes")
         try:
             manifest = json.loads(mf.read_text())
             entries = manifest["trials"]
@@ -373,6 +379,8 @@ def is_replay(path: str | Path) -> bool:
     """Whether ``path`` is an estimator replay's output (a ``replay`` metadata record): the
     recording's channels again, read by :mod:`analysis.replays`, not a trial of its own."""
     try:
+        if not Path(path).is_file():
+            return False
         with Path(path).open("rb") as fh:
             return any(m.name == "replay" for m in make_reader(fh).iter_metadata())
     except Exception:  # an unreadable file is the trials' loader's to report

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from magrun.files import open_binary
 from magrun.records import POSE_STREAMS, metadata_value, pose_of
 from magrun.recover import is_mcap
 
@@ -76,7 +77,7 @@ def read_ticks(path: str | Path) -> RecordedTrial:
     rows: dict[int, dict[str, Any]] = {}
     names: tuple[str, ...] = ()
     try:
-        with path.open("rb") as fh:
+        with open_binary(path) as fh:
             reader = make_reader(fh, decoder_factories=[DecoderFactory()])
             if reader.get_summary() is None:
                 raise RecordingReadError(

@@ -28,6 +28,8 @@ from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from magrun.files import open_binary
+
 #: the bytes every MCAP file starts (and a finished one ends) with
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -35,7 +37,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 def is_mcap(path: str | Path) -> bool:
     """Whether ``path`` starts like an MCAP file (its magic bytes); False if unreadable."""
     try:
-        with open(path, "rb") as fh:
+        with open_binary(path) as fh:
             return fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC
     except OSError:
         return False
@@ -124,7 +126,7 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
     report = RecoveryReport(bytes_total=src.stat().st_size)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
-    with src.open("rb") as fh:
+    with open_binary(src) as fh:
         reader = StreamReader(fh, validate_crcs=True)
         records = reader.records
         try:

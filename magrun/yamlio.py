@@ -13,7 +13,6 @@ from __future__ import annotations
 import difflib
 import json
 import re
-import stat
 import typing
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,6 +20,8 @@ from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
+
+from magrun.files import NotRegularFileError, open_binary
 
 if typing.TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -241,7 +242,37 @@ def safe_yaml(text: str, source: str) -> tuple[yaml.Node | None, Any]:
         raise YamlModelError([f"{source}: not valid YAML: nested too deeply"]) from exc
     except ValueError as exc:  # e.g. an integer of more digits than Python converts
         raise YamlModelError([f"{source}: not valid YAML: {exc}"]) from exc
+    if root is not None:
+        _refuse_duplicate_keys(root, source)
     return root, data
+
+
+def _refuse_duplicate_keys(root: yaml.Node, source: str) -> None:
+    """YAML requires a mapping's keys to be unique; PyYAML keeps the last silently, so a
+    setting given twice (``seed: 1`` … ``seed: 7``) would run with a value the reader of the
+    file's top did not expect. Walks the tree once (aliases are not re-entered)."""
+    seen: set[int] = set()
+    stack = [root]
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            keys: dict[str, int] = {}
+            for key, value in node.value:
+                if isinstance(key, yaml.ScalarNode) and key.tag != "tag:yaml.org,2002:merge":
+                    if key.value in keys:
+                        raise YamlModelError(
+                            [
+                                f"{source}:{key.start_mark.line + 1}: {key.value}: given "
+                                f"twice (first on line {keys[key.value]})"
+                            ]
+                        )
+                    keys[key.value] = key.start_mark.line + 1
+                stack += [key, value]
+        elif isinstance(node, yaml.SequenceNode):
+            stack += node.value
 
 
 def safe_json(text: str, source: str, limit: int = MAX_YAML_CHARS) -> Any:
@@ -302,7 +333,7 @@ def read_npz(path: str | Path, written_by: str) -> dict[str, NDArray[Any]]:
 
     try:
         # open the file ourselves: np.load leaks its handle on a corrupt archive
-        with open(path, "rb") as fh:
+        with open_binary(path) as fh:
             check_npz(fh, written_by)
             with np.load(fh, allow_pickle=False) as npz:
                 return {name: np.asarray(npz[name]) for name in npz.files}
@@ -342,12 +373,13 @@ def load_yaml_model(
 def read_text_file(path: str | Path, limit: int = MAX_YAML_CHARS) -> str:
     """The UTF-8 text of a regular file of at most ``limit`` characters, or a
     :class:`YamlModelError` naming it: a FIFO, a device or a folder is refused before it is
-    opened (reading a FIFO waits for a writer for ever), and the read is bounded."""
+    read (:func:`open_binary`), and the read is bounded."""
     try:
-        if not stat.S_ISREG(Path(path).stat().st_mode):
-            raise YamlModelError([f"{path}: cannot read: not a regular file"])
-        with Path(path).open(encoding="utf-8") as fh:
-            text = fh.read(limit + 1)
+        with open_binary(path) as fh:
+            data = fh.read(4 * limit + 4)  # UTF-8: at most 4 bytes a character
+        text = data.decode("utf-8")
+    except NotRegularFileError as exc:
+        raise YamlModelError([f"{path}: cannot read: not a regular file"]) from exc
     except (OSError, UnicodeDecodeError) as exc:
         raise YamlModelError([f"{path}: cannot read: {exc}"]) from exc
     if len(text) > limit:

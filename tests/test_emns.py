@@ -409,7 +409,8 @@ def _limited_octomag(tmp_path: Path) -> Path:
     shutil.copytree(ROOT / "systems" / "octomag", folder)
     text = (folder / "system.yaml").read_text()
     (folder / "system.yaml").write_text(
-        text + "channel_limits:\n  Coil_0: {max_slew_rate_a_per_s: 0.5}\n"
+        text.replace("channel_limits: {}\n", "")
+        + "channel_limits:\n  Coil_0: {max_slew_rate_a_per_s: 0.5}\n"
         "  Coil_1: {max_current_a: 0.2}\n"
     )
     return folder

@@ -492,3 +492,77 @@ def test_set_values_the_yaml_parser_chokes_on(tmp_path: Path, value: str, messag
     assert code == 2, out
     assert message in out, out
     assert len(out) < 1000  # the value is cut in the message, not echoed whole
+
+
+# --------------------------------------------------------------------------------------------
+# Paths that are not files: reading a FIFO would wait for a writer for ever
+
+
+@pytest.fixture
+def fifo(tmp_path: Path) -> Path:
+    import os
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this platform")
+    path = tmp_path / "pipe.mcap"
+    os.mkfifo(path)
+    return path
+
+
+def test_readers_refuse_a_fifo_without_waiting(fifo: Path, tmp_path: Path) -> None:
+    from analysis.load import RecordingError, find_recordings, read_recording
+    from magrun.files import NotRegularFileError, open_binary
+    from magrun.recover import is_mcap
+    from magrun.yamlio import read_npz, read_text_file
+
+    with pytest.raises(NotRegularFileError, match="not a regular file"):
+        open_binary(fifo)
+    with pytest.raises(YamlModelError, match="not a regular file"):
+        read_text_file(fifo)
+    with pytest.raises(ValueError, match="not a regular file"):
+        read_npz(fifo, "magrun field fit")
+    assert not is_mcap(fifo)
+    with pytest.raises(RecordingError, match="not a regular file"):
+        read_recording(fifo)
+    # a folder of runs, one of whose manifests is a FIFO
+    run = tmp_path / "runs" / "a"
+    run.mkdir(parents=True)
+    import os
+
+    os.mkfifo(run / "manifest.json")
+    with pytest.raises(RecordingError, match="not a regular file"):
+        find_recordings(run.parent)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["recover", "{fifo}", "{tmp}/out.mcap"],
+        ["replay", "{fifo}"],
+        ["view", "{fifo}", "--save", "{tmp}/v.rrd"],
+        ["identify", "{fifo}", "--out", "{tmp}/robots.yaml"],
+        ["figures", "{fifo}", "--out", "{tmp}/fig"],
+        ["field", "import-mpem", "{fifo}", "--plane-z-mm", "0", "--out", "{tmp}/sys"],
+        ["tracker", "eval", "--weights", "{fifo}"],
+        ["validate", "{fifo}"],
+    ],
+    ids=lambda a: " ".join(a[:2]),
+)
+def test_commands_given_a_fifo_exit_2_without_waiting(
+    fifo: Path, tmp_path: Path, args: list[str]
+) -> None:
+    code, out = _invoke(*(a.format(fifo=fifo, tmp=tmp_path) for a in args))
+    assert code == 2, out
+    assert "not a regular file" in out, out
+    assert "Traceback" not in out
+
+
+def test_a_setting_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
+    path = tmp_path / "twice.yaml"
+    path.write_text(
+        "name: twice\ntrajectory: {kind: s_curve}\nmethods: [proposed]\nseed: 1\nseed: 7\n"
+    )
+    with pytest.raises(
+        YamlModelError, match=r"twice.yaml:5: seed: given twice \(first on line 4\)"
+    ):
+        load_protocol(path)

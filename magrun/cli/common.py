@@ -13,6 +13,22 @@ import click
 INPUT_ERROR = 2
 
 
+class InputFile(click.Path):
+    """An existing regular file to read (a path argument or option): a folder, a FIFO (where
+    reading waits for a writer for ever), a socket or a device is refused with exit 2."""
+
+    name = "file"
+
+    def __init__(self) -> None:
+        super().__init__(exists=True, dir_okay=False, path_type=Path)
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        path = super().convert(value, param, ctx)
+        if not Path(str(path)).is_file():
+            self.fail(f"{str(path)!r} is not a regular file.", param, ctx)
+        return path
+
+
 class InputError(click.ClickException):
     """User input we cannot use: exit status 2, message only."""
 

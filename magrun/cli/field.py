@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from magrun.cli.common import InputError, load_coils
+from magrun.cli.common import InputError, InputFile, load_coils
 
 
 @click.group()
@@ -18,7 +18,7 @@ def field() -> None:
 
 COILS_OPTION = click.option(
     "--coils",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     default=None,
     help="Coil-system YAML (default: the paper's rig shipped with magrun).",
 )
@@ -70,7 +70,7 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
 @COILS_OPTION
 @click.option(
     "--reference",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     default=None,
     help="Reference maps .npz (default: the maps shipped with magrun).",
 )
@@ -171,17 +171,17 @@ def field_fit(
 @COILS_OPTION
 @click.option(
     "--small",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     help="Small-coil export.",
 )
 @click.option(
     "--medium",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     help="Medium-coil export.",
 )
 @click.option(
     "--large",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     help="Large-coil export.",
 )
 @click.option(
@@ -243,7 +243,7 @@ def field_import_comsol(
 
 
 @field.command("import-mpem")
-@click.argument("calibration", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("calibration", type=InputFile())
 @click.option(
     "--plane-z-mm", type=float, required=True,
     help="The robot's plane: z of the calibration frame, mm.",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from magrun.cli.common import InputError
+from magrun.cli.common import InputError, InputFile
 
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
@@ -16,7 +16,7 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 @click.command("identify")
 @click.argument(
     "recordings", nargs=-1, required=True,
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
 )  # fmt: skip
 @click.option(
     "--out", type=click.Path(dir_okay=False, path_type=Path), required=True,
@@ -24,7 +24,7 @@ _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 )  # fmt: skip
 @click.option(
     "--test", "test", multiple=True,
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     help="A held-out recording: errors before and after, not fitted to (repeatable).",
 )  # fmt: skip
 @click.option(

@@ -8,12 +8,12 @@ from typing import Any
 
 import click
 
-from magrun.cli.common import InputError, claimed_outputs
+from magrun.cli.common import InputError, InputFile, claimed_outputs
 from magrun.cli.viewer import WEB_PORT, check_display, open_file
 
 
 @click.command("view")
-@click.argument("recording", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("recording", type=InputFile())
 @click.option(
     "--save", type=click.Path(dir_okay=False, path_type=Path),
     help="Write an .rrd (an .mcap is converted) instead of opening the viewer.",
@@ -95,7 +95,7 @@ def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:
 
 
 @click.command("recover")
-@click.argument("src", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("src", type=InputFile())
 @click.argument("dst", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--rrd", is_flag=True, help="Also regenerate DST's .rrd from the recovered MCAP.")
 @click.option("--overwrite", is_flag=True, help="Replace DST (and its .rrd) if they exist.")
@@ -146,7 +146,7 @@ def recover_cmd(src: Path, dst: Path, rrd: bool, overwrite: bool, as_json: bool)
     help="Output folder  [default: RECORDINGS/figures]",
 )  # fmt: skip
 @click.option(
-    "--zernike-data", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    "--zernike-data", type=InputFile(),
     help="Field-fit figure data (magrun field fit writes it)  [default: the shipped fit]",
 )  # fmt: skip
 @click.option("--no-zernike", is_flag=True, help="Skip the Zernike field-model figure.")

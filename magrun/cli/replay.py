@@ -9,7 +9,7 @@ from typing import Any
 
 import click
 
-from magrun.cli.common import SET_HELP, InputError, claimed_outputs
+from magrun.cli.common import SET_HELP, InputError, InputFile, claimed_outputs
 from magrun.cli.viewer import LiveView, live_view, live_view_options
 from magrun.control import METHODS
 
@@ -17,7 +17,7 @@ _LABEL = re.compile(r"[A-Za-z0-9_.-]+")
 
 
 @click.command("replay")
-@click.argument("recording", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("recording", type=InputFile())
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help=SET_HELP)
 @click.option(
     "--estimator", type=click.Choice(["kalman", "measurement", "hold"]),

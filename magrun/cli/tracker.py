@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from magrun import __version__
-from magrun.cli.common import InputError, Progress, default_tracker
+from magrun.cli.common import InputError, InputFile, Progress, default_tracker
 
 
 @click.group()
@@ -23,7 +23,7 @@ def tracker() -> None:
 def _weights_option(help_text: str) -> Any:
     return click.option(
         "--weights",
-        type=click.Path(exists=True, dir_okay=False, path_type=Path),
+        type=InputFile(),
         default=None,
         help=help_text,
     )
@@ -42,7 +42,7 @@ def _weights_option(help_text: str) -> Any:
 @click.option("--seed", default=0, show_default=True, help="Seeds the data and the weights.")
 @click.option(
     "--init",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     default=None,
     help="Start from these weights (fine-tuning) instead of random ones.",
 )
@@ -54,7 +54,7 @@ def _weights_option(help_text: str) -> Any:
 )
 @click.option(
     "--labels",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    type=InputFile(),
     default=None,
     help="Keypoint annotations of --images (CSV; see docs/tracking.md).",
 )

@@ -42,6 +42,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.field.reference import FieldMap, ReferenceMaps
+from magrun.yamlio import YamlModelError, read_text_file
+
+#: the most characters a COMSOL export may have (a 2-D grid of some million points)
+MAX_COMSOL_CHARS = 500_000_000
 
 LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "μm": 1e-6}
 FIELD_UNITS = {
@@ -91,9 +95,9 @@ def read_comsol_map(path: str | Path, current_a: float = 1.0) -> FieldMap:
     if not (current_a > 0 and math.isfinite(current_a)):
         raise ValueError(f"current_a must be a positive number of amperes, got {current_a}")
     try:
-        lines = path.read_text(encoding="utf-8-sig").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ComsolFormatError(f"{path}:0: cannot read file: {exc}") from exc
+        lines = read_text_file(path, MAX_COMSOL_CHARS).removeprefix("\ufeff").splitlines()
+    except YamlModelError as exc:
+        raise ComsolFormatError(f"{path}:0: {exc}") from exc
 
     length_unit: str | None = None
     header: list[tuple[str, str | None]] | None = None
