@@ -36,6 +36,14 @@ def write_npz(path: str | Path, arrays: Mapping[str, NDArray[Any]]) -> None:
     tmp.replace(path)
 
 
+def write_figure(figure: Any, path: str | Path) -> None:
+    """Save a matplotlib ``figure`` to ``path`` atomically, in the format its suffix names."""
+    path = Path(path)
+    tmp = _part(path)
+    figure.savefig(tmp, format=path.suffix.lstrip(".").lower(), dpi=150)
+    tmp.replace(path)
+
+
 #: the advisory lock file inside a folder a command writes (a run's, a replay's)
 LOCK_NAME = ".magrun-lock"
 

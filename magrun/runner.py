@@ -470,6 +470,7 @@ def run_protocol(
     progress: ProgressFn | None = None,
     resume: bool = False,
     view: str = "",
+    check_reach: bool = True,
 ) -> dict[str, Any]:
     """Run every trial of ``protocol``; returns the manifest (also written to disk).
 
@@ -489,7 +490,8 @@ def run_protocol(
     elif rig == "hardware":
         raise RunError(NO_DRIVER)
     # a bad system folder, or damaged maps or models in it, fail here (RunError), before any run
-    coils = check_system(protocol)
+    # and so does a trajectory the coils cannot move the robot along (unless not asked)
+    coils = check_system(protocol, feasibility=check_reach)
     if isinstance(rig, HardwareSpec):
         # an unknown scheme, a rig out of reach or one whose channels or limits are not the
         # system's fails here (RunError), before a folder is made or a current sent

@@ -345,14 +345,17 @@ def system_of(protocol: Protocol) -> CoilSystem:
         raise RunError(str(exc)) from exc
 
 
-def check_system(protocol: Protocol) -> CoilSystem:
+def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     """What every trial of ``protocol`` is built from, built once and checked, before a run
     folder is made (``magrun run``); a :class:`RunError` names the problem:
 
     - the system folder's description, maps and fitted models, read as a trial reads them
       (a damaged map, a model fitted to another system);
     - the scene: the robot's body must fit in the workspace (the phantom's outline within
-      the coils' square), and the reference trajectory must stay inside both."""
+      the coils' square), and the reference trajectory must stay inside both;
+    - with ``feasibility``, the coils' reach: at every pose of the trajectory, currents
+      within the limits must give the robot its velocity and turn rate while holding a
+      heading (:func:`magrun.field.capability.trajectory_capability`)."""
     from magrun.field.grid import ChannelGrid
 
     coils = system_of(protocol)
@@ -378,7 +381,43 @@ def check_system(protocol: Protocol) -> CoilSystem:
             f"trajectory: leaves {where} at ({x:.2f}, {y:.2f}) mm (workspace: ±"
             f"{scene.half_width * 1e3:g} mm)"
         )
+    if feasibility:
+        check_reach(coils, scene.reference, robot)
     return coils
+
+
+def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> None:
+    """A :class:`RunError` where the coils cannot move ``robot`` along ``reference`` (the
+    nominal robot, the system's lookup-table model, its current limits)."""
+    from magrun.field.capability import trajectory_capability
+
+    model = system_models(coils.folder)[1]
+    reach = trajectory_capability(model, robot, coils.max_current, reference, 200, first=True)
+    if reach.feasible:
+        return
+    k = len(reach.t) - 1  # the first pose out of reach
+    x, y = reach.poses[k, :2] * 1e3
+    where = f"first at t = {reach.t[k]:.1f} s, ({x:.1f}, {y:.1f}) mm"
+    limit = f"within {np.max(coils.max_current):g} A"
+    if math.isnan(reach.factor[k]):
+        turn = math.degrees(abs(reach.turn_rate[k]))
+        problem = (
+            f"cannot give the robot the {robot.min_aligned_field * 1e3:g} mT along its moment "
+            f"that holds its heading"
+            + (f" while turning it at {turn:.0f}°/s" if turn else "")
+            + f", at any heading {limit}"
+        )
+    else:
+        asked = reach.speed[k] * 1e3
+        problem = (
+            f"can move the robot at {reach.factor[k]:.1%} of the {asked:.2f} mm/s asked there "
+            f"at most ({limit}, its field along the moment held)"
+        )
+    system = "" if coils.folder is None else f" {coils.folder}"
+    raise RunError(
+        f"trajectory: the coils {problem}, {where}. `magrun field check{system} --robot "
+        f"{robot.name} --speed-mm-s V` maps what they can do; --allow-infeasible runs anyway"
+    )
 
 
 @cache

@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import click
+import numpy as np
 
 from magrun.cli.common import InputError, InputFile, load_coils
 
@@ -318,3 +320,121 @@ def field_import_mpem(
         + (" and a background field" if system.has_background else "")
         + f", workspace ±{half_width_mm:g} mm on z = {plane_z_mm:g} mm"
     )
+
+
+@field.command("check")
+@click.argument(
+    "system_dir", metavar="[SYSTEM]", required=False,
+    type=click.Path(exists=True, file_okay=False, path_type=Path),
+)  # fmt: skip
+@click.option("--robot", required=True, help="A robot of robots.yaml (or of --robots-file).")
+@click.option("--robots-file", type=InputFile(), help="A robots file (default: magrun's).")
+@click.option(
+    "--speed-mm-s", type=click.FloatRange(min=0.001, max=1000.0),
+    help="A trajectory speed, mm/s: say whether the robot can move that fast everywhere.",
+)  # fmt: skip
+@click.option(
+    "--points", type=click.IntRange(min=2, max=101), default=11, show_default=True,
+    help="Grid positions along each side of the workspace.",
+)  # fmt: skip
+@click.option(
+    "--headings", type=click.IntRange(min=1, max=72), default=8, show_default=True,
+    help="Robot headings per position.",
+)  # fmt: skip
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Write the map figure (.png, .pdf, .svg).",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as one JSON object.")
+def field_check(
+    system_dir: Path | None,
+    robot: str,
+    robots_file: Path | None,
+    speed_mm_s: float | None,
+    points: int,
+    headings: int,
+    out: Path | None,
+    as_json: bool,
+) -> None:
+    """What a coil system (a folder; default: the paper's rig) can do with a robot over its
+    workspace: the largest force and torque, the largest field, and the speed the robot can
+    hold moving along its axis while its heading is held (the field along its moment at least
+    its min_aligned_field, no torque), per position and heading; with --speed-mm-s, whether
+    that speed is reachable everywhere ("feasible")."""
+    from magrun.field.capability import workspace_capability
+    from magrun.robot import load_robot
+    from magrun.trial import system_models
+    from magrun.yamlio import YamlModelError
+
+    if out is not None and out.suffix.lower() not in {".png", ".pdf", ".svg"}:
+        raise InputError(f"{out}: the figure is a .png, .pdf or .svg file")
+    coils = load_coils(system_dir)
+    try:
+        params = load_robot(robot, robots_file)
+        model = system_models(coils.folder)[1]
+    except (KeyError, YamlModelError, ValueError) as exc:
+        raise InputError(str(exc.args[0]) if isinstance(exc, KeyError) else str(exc)) from exc
+    speed = None if speed_mm_s is None else speed_mm_s * 1e-3
+    cap = workspace_capability(
+        model, params, coils.max_current, coils.workspace_half_width, points, headings, speed
+    )
+    summary = {"system": coils.name, "robot": params.name, **cap.summary()}
+    if out is not None:
+        _capability_figure(cap, summary, out)
+        summary["figure"] = str(out)
+    if as_json:
+        click.echo(json.dumps(summary))
+        return
+    limit = np.max(coils.max_current)
+    s = summary["speed_along_axis_mm_s"]
+    click.echo(
+        f"{coils.name} ({coils.n_channels} channels, up to {limit:g} A, workspace "
+        f"±{coils.workspace_half_width * 1e3:g} mm) with {params.name}, "
+        f"{points} × {points} positions × {headings} headings:"
+    )
+    force = summary["largest_force_uN"]
+    click.echo(f"  largest force   {force:10.1f} µN   (along the robot's axis, heading held)")
+    click.echo(f"  largest torque  {summary['largest_torque_uNm']:10.2f} µN m")
+    click.echo(f"  largest field   {summary['largest_field_mT']:10.1f} mT")
+    click.echo(f"  heading held at {summary['poses_held_share']:10.0%} of positions × headings")
+    click.echo(
+        f"  speed along the axis, heading held: {s['worst']:.2f} mm/s at the worst position and "
+        f"heading, median over positions {s['median']:.2f}; best {s['best']:.2f} mm/s"
+    )
+    if speed_mm_s is not None:
+        verdict = "feasible" if summary["feasible"] else "NOT feasible"
+        click.echo(
+            f"  {speed_mm_s:g} mm/s in every direction (the robot free to point elsewhere): "
+            f"{verdict} ({summary['feasible_share']:.0%} of positions × directions)"
+        )
+    if out is not None:
+        click.echo(f"wrote {out}")
+
+
+def _capability_figure(cap: Any, summary: dict[str, Any], out: Path) -> None:
+    """Three maps: the speed at the worst heading, the largest force, the largest field."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from magrun import atomic
+
+    held = np.where(np.isfinite(cap.speed), cap.speed, 0.0)
+    panels = [
+        ("speed along the axis, worst heading [mm/s]", held.min(axis=2) * 1e3),
+        ("largest force along the axis [µN]", np.nan_to_num(cap.force).max(axis=2) * 1e6),
+        ("largest field [mT]", cap.field * 1e3),
+    ]
+    extent = [cap.x[0] * 1e3, cap.x[-1] * 1e3, cap.y[0] * 1e3, cap.y[-1] * 1e3]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
+    for ax, (title, values) in zip(axes, panels, strict=True):
+        image = ax.imshow(values, origin="lower", extent=extent, cmap="viridis")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        fig.colorbar(image, ax=ax, shrink=0.85)
+    fig.suptitle(f"{summary['system']} with {summary['robot']}")
+    atomic.write_figure(fig, out)
+    plt.close(fig)

@@ -184,6 +184,10 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
     "--resume", is_flag=True,
     help="Continue the run in OUT/<protocol>/: trials already ok are kept, the rest run.",
 )  # fmt: skip
+@click.option(
+    "--allow-infeasible", is_flag=True,
+    help="Run a trajectory the coils cannot move the robot along (refused by default).",
+)  # fmt: skip
 @live_view_options
 def run(
     protocol_file: Path,
@@ -200,6 +204,7 @@ def run(
     ray_address: str | None,
     overwrite: bool,
     resume: bool,
+    allow_infeasible: bool,
     open_view: bool,
     connect: str | None,
     web: bool,
@@ -213,6 +218,10 @@ def run(
     holds its error; the other trials' recordings are complete). SIGINT (Ctrl-C) or SIGTERM
     ends the running trials cleanly (zero currents, recordings finished and indexed, marked
     "interrupted" in the manifest) and exits with 130 / 143; --resume runs the rest.
+
+    Before anything runs, the trajectory is checked against what the coils can do with the
+    robot (the velocity at every pose, the robot's field held, within the current limits):
+    one they cannot follow exits 2, naming where, unless --allow-infeasible.
 
     With --view, --connect or --web each trial is also streamed to a Rerun viewer while it
     runs, one recording per trial, with the same views as its .rrd. The recordings are
@@ -238,7 +247,7 @@ def run(
     with live_view(open_view, connect, web, web_port, f"magrun run {protocol_file} --web") as lv:
         _run(
             protocol, protocol_file, out, quick, seed, jobs, the_rig, executor, ray_address,
-            overwrite, resume, n, lv,
+            overwrite, resume, n, lv, not allow_infeasible,
         )  # fmt: skip
 
 
@@ -256,6 +265,7 @@ def _run(
     resume: bool,
     n: int,
     view: LiveView | None,
+    check_reach: bool = True,
 ) -> None:
     from magrun import interrupt
     from magrun.runner import RunError, local_executor, ray_executor, run_protocol
@@ -279,6 +289,7 @@ def _run(
                 executor=None if executor == "local" else chosen,
                 overwrite=overwrite, protocol_file=str(protocol_file),
                 on_trial=progress.trial_done, progress=progress.tick, resume=resume, view=url,
+                check_reach=check_reach,
             )  # fmt: skip
     except RunError as exc:
         raise InputError(str(exc)) from exc

@@ -1,0 +1,302 @@
+"""What a coil system can do with a robot: force, torque, held field and sustainable speed.
+
+A magnet robot of moment m along its heading h = (cos θ, sin θ) in the field B(I) and
+gradient G(I) of currents I (both linear in I, plus a background where the system has one)
+feels (:func:`magrun.robot.magnetic_wrench`)::
+
+    F = m Gᵀ h,        τ = m (h × B) = m h⊥ · B,        h⊥ = (−sin θ, cos θ)
+
+and, drag-dominated, moves at v = D(θ)⁻¹ F with D(θ) the drag matrix. To move at velocity v
+while turning at ω it needs F = D(θ) v and τ = d_r ω, and to keep its heading stable a
+field along its moment of at least B_min (the robot's ``min_aligned_field``). Each of these
+is linear in the currents, so for a pose, a velocity and a turn rate the largest speed factor
+s for which the currents can give ``F = s D(θ) v``, the torque and ``h · B ≥ B_min`` within
+each channel's limit is a linear program (scipy's HiGHS)::
+
+    max s   s.t.  m Gᵀ(I) h − s D(θ) v = −m G₀ᵀ h,     m h⊥ · B(I) = d_r ω − m h⊥ · B₀,
+                  h · B(I) ≥ B_min − h · B₀,           |I_k| ≤ I_max,k,    0 ≤ s ≤ s_cap
+
+The pose can be held at speed s |v| (s ≥ 1: the velocity is reachable). Three equalities
+in the currents: a three-coil system has no freedom left, and whether its one solution lies
+within the limits is exactly the question. No solution at all (s infeasible) means the
+system cannot even hold that pose and heading there.
+
+:func:`workspace_capability` maps this over a grid of positions and headings (the robot
+moving along its axis); :func:`trajectory_capability` checks a reference trajectory pose by
+pose (``magrun run`` refuses a trajectory the coils cannot follow); ``magrun field check``
+prints both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import linprog
+
+from magrun.field.model import PlanarFieldModel
+from magrun.robot import RobotParams, drag_matrix
+from magrun.scene import Trajectory
+
+FloatArray = NDArray[np.float64]
+
+#: the largest speed factor an LP reports (a velocity of 0 needs none; "unbounded")
+SPEED_CAP = 1e6
+#: heading offsets (rad) tried, in this order, where the reference's own heading cannot be
+#: held at the asked velocity: the robot may point elsewhere and still follow the path
+HEADING_OFFSETS = np.radians([0.0, *(d * s for d in range(15, 181, 15) for s in (1, -1))][:-1])
+#: a velocity reached to this fraction counts as reached: short of it by 1 % at a pose, the
+#: robot falls behind by 1 % of its speed there, well below any tracking error; refusing a
+#: run for that would refuse trajectories at exactly the coils' limit
+REACHED = 0.99
+#: directions sampled for the largest field magnitude (the torque's bound)
+FIELD_DIRECTIONS = 72
+
+
+@dataclass(frozen=True)
+class PoseCapability:
+    """What the coils can do at one pose, for one velocity and turn rate."""
+
+    #: largest factor on the asked velocity (NaN: the pose and heading cannot be held at all)
+    speed_factor: float
+    #: the currents that give it (A), or None
+    currents: FloatArray | None
+
+
+def _limits(max_current: float | ArrayLike, n: int) -> FloatArray:
+    limits = np.broadcast_to(np.asarray(max_current, dtype=np.float64), (n,)).copy()
+    if not np.all(np.isfinite(limits) & (limits > 0)):
+        raise ValueError("every channel's current limit must be a positive number of amperes")
+    return limits
+
+
+def pose_capability(
+    B: FloatArray,
+    G: FloatArray,
+    background: tuple[FloatArray, FloatArray],
+    limits: FloatArray,
+    robot: RobotParams,
+    theta: float,
+    velocity: ArrayLike,
+    turn_rate: float = 0.0,
+) -> PoseCapability:
+    """The LP of the module doc at one pose: ``B`` (n, 2) T/A and ``G`` (n, 2, 2) T/(m A)
+    the channels' unit fields and gradients there, ``background`` its (B₀, G₀), ``velocity``
+    (2,) m/s and ``turn_rate`` rad/s asked."""
+    n = B.shape[0]
+    m = robot.moment
+    h = np.array([math.cos(theta), math.sin(theta)])
+    hp = np.array([-h[1], h[0]])
+    B0, G0 = background
+    F_req = drag_matrix(robot, theta) @ np.asarray(velocity, dtype=np.float64)
+    # force per ampere: F_l = m Σ_j h_j G[j, l]
+    force = m * np.einsum("j,cjl->lc", h, G)  # (2, n)
+    f0 = m * (h @ G0)
+    a_eq = np.zeros((3, n + 1))
+    a_eq[:2, :n], a_eq[:2, n] = force, -F_req
+    a_eq[2, :n] = m * (B @ hp)
+    b_eq = np.array([-f0[0], -f0[1], robot.drag_rotation * turn_rate - m * (hp @ B0)])
+    a_ub = np.zeros((1, n + 1))
+    a_ub[0, :n] = -(B @ h)
+    b_ub = np.array([float(h @ B0) - robot.min_aligned_field])
+    # scale the rows to order one (newtons, newton-metres and teslas are far apart) by what
+    # the coils can give at all, not by the row's own projection: a projection that is zero
+    # up to rounding must stay negligible, not become a constraint
+    field_scale = float(np.abs(B).max(axis=1) @ limits) or 1.0  # T
+    force_scale = max(float(np.abs(force).max(axis=0) @ limits), float(np.abs(F_req).max()))
+    norm = np.array([force_scale or 1.0, force_scale or 1.0, m * field_scale])
+    a_eq /= norm[:, None]
+    b_eq /= norm
+    a_ub /= field_scale
+    b_ub /= field_scale
+    bounds = [(-lim, lim) for lim in limits] + [(0.0, SPEED_CAP)]
+    cost = np.zeros(n + 1)
+    cost[n] = -1.0
+    result = linprog(cost, A_ub=a_ub, b_ub=b_ub, A_eq=a_eq, b_eq=b_eq, bounds=bounds)
+    if result.status != 0:
+        return PoseCapability(math.nan, None)
+    return PoseCapability(float(result.x[n]), np.asarray(result.x[:n], dtype=np.float64))
+
+
+def reachable(
+    B: FloatArray,
+    G: FloatArray,
+    background: tuple[FloatArray, FloatArray],
+    limits: FloatArray,
+    robot: RobotParams,
+    theta: float,
+    velocity: ArrayLike,
+    turn_rate: float = 0.0,
+) -> tuple[float, float]:
+    """:func:`pose_capability` at heading ``theta`` and, where that falls short of the asked
+    velocity, at the headings :data:`HEADING_OFFSETS` away, until one reaches it: the factor
+    (the first ≥ :data:`REACHED` found, else the best; NaN where no heading can be held)
+    and its offset."""
+    best, at = math.nan, 0.0
+    for delta in HEADING_OFFSETS:
+        cap = pose_capability(B, G, background, limits, robot, theta + delta, velocity, turn_rate)
+        if cap.speed_factor > best or math.isnan(best):
+            best, at = cap.speed_factor, float(delta)
+        if best >= REACHED:
+            break
+    return best, at
+
+
+@dataclass(frozen=True)
+class WorkspaceCapability:
+    """:func:`workspace_capability`'s maps, per position (ny, nx) and heading (nθ)."""
+
+    x: FloatArray  # m, (nx,)
+    y: FloatArray  # m, (ny,)
+    headings: FloatArray  # rad, (nθ,)
+    #: the speed the robot can hold moving along its axis, m/s (0: it cannot move; NaN: it
+    #: cannot even hold the heading there), (ny, nx, nθ)
+    speed: FloatArray
+    #: the largest force along the heading while holding it, N, (ny, nx, nθ)
+    force: FloatArray
+    #: the largest field the coils make there, T (any direction), (ny, nx)
+    field: FloatArray
+    #: the largest torque on the robot, N m: m times the largest field, (ny, nx)
+    torque: FloatArray
+
+    #: with a speed asked: per position and direction of travel (the headings' directions),
+    #: whether some heading lets the robot move that way at that speed, (ny, nx, nθ)
+    reaches: NDArray[np.bool_] | None = None
+    #: the speed asked, m/s
+    asked: float | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """The figures ``magrun field check`` prints (SI in, the units named in the keys)."""
+        held = np.isfinite(self.speed)
+        along = np.where(held, self.speed, 0.0)
+        worst = along.min(axis=2)  # the worst heading per position
+        out: dict[str, Any] = {
+            "positions": int(worst.size),
+            "headings": int(self.headings.size),
+            "largest_force_uN": float(np.nanmax(self.force) * 1e6) if held.any() else 0.0,
+            "largest_torque_uNm": float(self.torque.max() * 1e6),
+            "largest_field_mT": float(self.field.max() * 1e3),
+            "poses_held_share": float(held.mean()),
+            "speed_along_axis_mm_s": {
+                "worst": float(worst.min() * 1e3),
+                "median": float(np.median(worst) * 1e3),
+                "best": float(along.max() * 1e3),
+            },
+        }
+        if self.reaches is not None and self.asked is not None:
+            out["speed_asked_mm_s"] = self.asked * 1e3
+            out["feasible_share"] = float(self.reaches.mean())
+            out["feasible"] = bool(self.reaches.all())
+        return out
+
+
+def workspace_capability(
+    model: PlanarFieldModel,
+    robot: RobotParams,
+    max_current: float | ArrayLike,
+    half_width: float,
+    points: int = 11,
+    headings: int = 8,
+    speed: float | None = None,
+) -> WorkspaceCapability:
+    """The module doc's figures on a ``points`` × ``points`` grid over the square
+    ±``half_width`` (m) and ``headings`` headings, the robot moving along its axis; with a
+    ``speed`` (m/s), also whether it can move at that speed in each of the headings'
+    directions with some heading (:func:`reachable`)."""
+    n = model.coils.n_channels
+    limits = _limits(max_current, n)
+    axis = np.linspace(-half_width, half_width, points)
+    thetas = np.arange(headings) * (2 * math.pi / headings)
+    grid = np.stack(np.meshgrid(axis, axis), axis=-1)  # (ny, nx, 2): [i, j] = (x_j, y_i)
+    B, G = model.unit_field_and_gradient(grid)
+    B0, G0 = model.background_field_and_gradient(grid)
+    speed_here = np.full((points, points, headings), math.nan)
+    force = np.full((points, points, headings), math.nan)
+    directions = np.arange(FIELD_DIRECTIONS) * (2 * math.pi / FIELD_DIRECTIONS)
+    d = np.stack([np.cos(directions), np.sin(directions)], axis=-1)  # (nd, 2)
+    # the largest |B| over the box: max over directions d of Σ_c |d·B_c| I_c + d·B₀
+    field = np.abs(np.einsum("dk,yxck->yxdc", d, B)) @ limits + np.einsum("dk,yxk->yxd", d, B0)
+    field = field.max(axis=2)
+    reaches = None if speed is None else np.zeros((points, points, headings), dtype=bool)
+    for i in range(points):
+        for j in range(points):
+            here = (B[i, j], G[i, j], (B0[i, j], G0[i, j]), limits, robot)
+            for k, theta in enumerate(thetas):
+                h = np.array([math.cos(theta), math.sin(theta)])
+                # at a unit speed (1 m/s) along the axis, the factor is the speed itself
+                cap = pose_capability(*here, float(theta), h)
+                speed_here[i, j, k] = cap.speed_factor
+                if cap.currents is not None:
+                    force[i, j, k] = cap.speed_factor * robot.drag_parallel
+                if reaches is not None and speed is not None:
+                    reaches[i, j, k] = (
+                        cap.speed_factor >= REACHED * speed
+                        or reachable(*here, float(theta), speed * h)[0] >= REACHED
+                    )
+    return WorkspaceCapability(
+        axis, axis, thetas.astype(np.float64), speed_here, force, field, robot.moment * field,
+        reaches, speed,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class TrajectoryCapability:
+    """:func:`trajectory_capability`'s verdict on a reference trajectory."""
+
+    t: FloatArray  # s, the poses checked
+    poses: FloatArray  # (n, 3), m and rad
+    #: per pose, the largest factor on the reference's velocity (NaN: not holdable)
+    factor: FloatArray
+    speed: FloatArray  # m/s, the reference's speed at each pose
+    #: rad, the heading offset from the reference's at which ``factor`` holds (0: its own)
+    heading_offset: FloatArray
+    turn_rate: FloatArray  # rad/s, the reference's at each pose
+
+    @property
+    def feasible(self) -> bool:
+        """Whether every pose's velocity is reached (to :data:`REACHED`)."""
+        return bool(np.all(self.factor >= REACHED))
+
+    def worst(self) -> int:
+        """Index of the pose with the least factor (an unholdable one first)."""
+        f = np.where(np.isfinite(self.factor), self.factor, -1.0)
+        return int(np.argmin(f))
+
+
+def trajectory_capability(
+    model: PlanarFieldModel,
+    robot: RobotParams,
+    max_current: float | ArrayLike,
+    reference: Trajectory,
+    samples: int = 400,
+    first: bool = False,
+) -> TrajectoryCapability:
+    """Check ``reference`` at ``samples`` evenly spaced times: at each, can the coils give
+    the velocity and turn rate it asks (central differences) while holding the heading's
+    field (module doc)? With ``first``, stop at the first pose they cannot (the result then
+    ends there)."""
+    n = model.coils.n_channels
+    limits = _limits(max_current, n)
+    t = np.linspace(0.0, reference.duration, samples)
+    poses = reference.pose(t)
+    rates = np.gradient(poses, t, axis=0)  # (samples, 3): vx, vy, ω
+    B, G = model.unit_field_and_gradient(poses[:, :2])
+    B0, G0 = model.background_field_and_gradient(poses[:, :2])
+    factor = np.full(samples, math.nan)
+    offset = np.zeros(samples)
+    for k in range(samples):
+        factor[k], offset[k] = reachable(
+            B[k], G[k], (B0[k], G0[k]), limits, robot, float(poses[k, 2]), rates[k, :2],
+            float(rates[k, 2]),
+        )  # fmt: skip
+        if first and not factor[k] >= REACHED:
+            samples = k + 1
+            break
+    speed = np.hypot(rates[:, 0], rates[:, 1])
+    cut = slice(0, samples)
+    return TrajectoryCapability(
+        t[cut], poses[cut], factor[cut], speed[cut], offset[cut], rates[cut, 2]
+    )

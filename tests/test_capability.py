@@ -1,0 +1,163 @@
+"""What a coil system can do with a robot (magrun.field.capability, ``magrun field check``).
+
+The linear program is checked against a two-channel pose solved by hand, and its currents on
+an imported three-coil system with a background field against the robot's wrench computed
+independently (:func:`magrun.robot.magnetic_wrench` on the model's field at those currents).
+``magrun run`` refuses a trajectory the coils cannot follow, naming where.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from numpy.testing import assert_allclose
+from test_emns import SYNTHETIC
+
+from magrun.cli import cli
+from magrun.field.capability import pose_capability, reachable, trajectory_capability
+from magrun.field.coils import CoilSystem
+from magrun.field.mpem import import_mpem
+from magrun.protocol import load_protocol
+from magrun.robot import drag_matrix, load_robot, magnetic_wrench
+from magrun.scene import s_trajectory
+from magrun.trial import RunError, check_system, system_models
+
+ROOT = Path(__file__).resolve().parents[1]
+ROBOT = load_robot("micro_magnet")
+
+
+@pytest.fixture(scope="module")
+def three(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three unsymmetric dipole coils and a background field, imported over ±10 mm."""
+    base = tmp_path_factory.mktemp("three")
+    (base / "three.yaml").write_text(SYNTHETIC)
+    return import_mpem(base / "three.yaml", base / "system", 0.0, (0.0, 0.0), 10e-3)
+
+
+def _two_channels(field_direction: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Channel 0: a uniform field of 1 mT/A along ``field_direction``; channel 1: a pure
+    gradient ∂Bx/∂x = −∂By/∂y = 0.5 T/(m A) (divergence-free) and no field at the point."""
+    B = np.array([[field_direction[0] * 1e-3, field_direction[1] * 1e-3], [0.0, 0.0]])
+    G = np.zeros((2, 2, 2))
+    G[1] = [[0.5, 0.0], [0.0, -0.5]]
+    return B, G
+
+
+def test_the_speed_along_the_axis_is_the_force_the_gradient_gives_over_the_drag() -> None:
+    """Heading along x, moving along x: the force is m ∂Bx/∂x I₁ (largest at I₁ = I_max), the
+    field along the moment I₀ · 1 mT (at least B_min), no torque: s = m g I_max / d∥."""
+    B, G = _two_channels((1.0, 0.0))
+    limits = np.array([2.0, 3.0])
+    zero = (np.zeros(2), np.zeros((2, 2)))
+    cap = pose_capability(B, G, zero, limits, ROBOT, 0.0, [1.0, 0.0])
+    assert cap.speed_factor == pytest.approx(ROBOT.moment * 0.5 * 3.0 / ROBOT.drag_parallel)
+    assert cap.currents is not None
+    assert cap.currents[0] * 1e-3 >= ROBOT.min_aligned_field - 1e-12
+    assert cap.currents[1] == pytest.approx(3.0)
+    # across the axis the gradient pushes nothing: the robot cannot move sideways at all
+    side = pose_capability(B, G, zero, limits, ROBOT, 0.0, [0.0, 1.0])
+    assert side.speed_factor == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_pose_whose_heading_no_current_can_hold_is_not_holdable() -> None:
+    """The only field is across the heading: holding it needs zero torque, so I₀ = 0, and
+    then nothing is left along the moment (B_min > 0): no solution at all (NaN)."""
+    B, G = _two_channels((0.0, 1.0))
+    zero = (np.zeros(2), np.zeros((2, 2)))
+    cap = pose_capability(B, G, zero, np.array([2.0, 3.0]), ROBOT, 0.0, [1.0, 0.0])
+    assert math.isnan(cap.speed_factor)
+    assert cap.currents is None
+    # turned by 90° the field lies along the moment: held, and moving along it is possible
+    factor, offset = reachable(B, G, zero, np.array([2.0, 3.0]), ROBOT, 0.0, [0.0, 1e-3])
+    assert factor >= 1.0
+    assert abs(offset) > 0
+
+
+def test_the_currents_give_the_asked_wrench_on_a_three_coil_system(three: Path) -> None:
+    """On the imported three-coil system (background included), at poses across the
+    workspace, the LP's currents, put through the model and the robot's wrench, give the
+    force s D(θ) v, the torque d_r ω and the field along the moment ≥ B_min, within limits."""
+    coils = CoilSystem.load(three)
+    model = system_models(three)[1]
+    limits = np.full(3, 10.0)
+    rng = np.random.default_rng(7)
+    checked = 0
+    for _ in range(40):
+        p = rng.uniform(-8e-3, 8e-3, 2)
+        theta = rng.uniform(-math.pi, math.pi)
+        v = rng.normal(size=2) * 1e-3
+        omega = rng.normal() * 0.2
+        B, G = model.unit_field_and_gradient(p)
+        bg = model.background_field_and_gradient(p)
+        cap = pose_capability(B, G, bg, limits, ROBOT, theta, v, omega)
+        if cap.currents is None:
+            continue
+        checked += 1
+        assert np.all(np.abs(cap.currents) <= limits * (1 + 1e-9))
+        Bt, Gt = model.field_and_gradient(p, cap.currents)
+        force, torque = magnetic_wrench(theta, ROBOT.moment, Bt, Gt)
+        expected = cap.speed_factor * drag_matrix(ROBOT, theta) @ v
+        scale = np.abs(ROBOT.moment * np.abs(G).max() * limits).max()  # N: the largest force
+        assert_allclose(force, expected, atol=1e-7 * scale)
+        assert torque == pytest.approx(ROBOT.drag_rotation * omega, abs=1e-7 * scale * 1e-2)
+        along = Bt @ np.array([math.cos(theta), math.sin(theta)])
+        assert along >= ROBOT.min_aligned_field * (1 - 1e-6)
+    assert coils.n_channels == 3
+    assert checked >= 10
+
+
+def test_a_slow_s_is_within_reach_and_a_fast_one_is_not(three: Path) -> None:
+    model = system_models(three)[1]
+    slow = s_trajectory(size=0.012, speed=1e-3)
+    assert trajectory_capability(model, ROBOT, 10.0, slow, samples=80).feasible
+    fast = s_trajectory(size=0.012, speed=0.5)
+    reach = trajectory_capability(model, ROBOT, 10.0, fast, samples=80)
+    assert not reach.feasible
+    # where the S turns, the robot cannot even be turned that fast (NaN); on its straight
+    # parts the gradient cannot push it to 0.5 m/s
+    straight = np.abs(reach.turn_rate) < 1e-9
+    assert np.any(straight)
+    assert np.all(reach.factor[straight] < 1.0)
+    assert np.all(reach.speed[straight] == pytest.approx(0.5, rel=1e-3))
+
+
+def test_run_refuses_a_trajectory_the_coils_cannot_follow(three: Path, tmp_path: Path) -> None:
+    overrides = [f"system={three}", "trajectory.speed_mm_s=100"]
+    protocol = load_protocol(ROOT / "protocols" / "octomag.yaml", overrides=overrides)
+    with pytest.raises(RunError, match=r"the coils can move the robot at .*% of the 100"):
+        check_system(protocol)
+    check_system(protocol, feasibility=False)  # told to go on: only the rest is checked
+    args = ["run", str(ROOT / "protocols" / "octomag.yaml"), "--out", str(tmp_path), "--quick"]
+    args += [a for o in overrides for a in ("--set", o)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert "--allow-infeasible" in result.output
+    assert not (tmp_path / "octomag").exists()  # nothing was run or written
+
+
+def test_every_shipped_protocol_is_within_its_coils_reach() -> None:
+    for path in sorted((ROOT / "protocols").glob("*.yaml")):
+        check_system(load_protocol(path))
+
+
+def test_field_check_prints_a_summary_and_draws_the_map(three: Path, tmp_path: Path) -> None:
+    figure = tmp_path / "check.png"
+    args = ["field", "check", str(three), "--robot", "micro_magnet", "--points", "4"]
+    result = CliRunner().invoke(cli, [*args, "--speed-mm-s", "1", "--json", "--out", str(figure)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.output)
+    assert summary["robot"] == "micro_magnet"
+    assert summary["positions"] == 16
+    assert summary["feasible"] is True
+    assert summary["largest_force_uN"] > 0
+    assert figure.stat().st_size > 10_000
+    too_fast = CliRunner().invoke(cli, [*args, "--speed-mm-s", "900", "--headings", "2", "--json"])
+    assert json.loads(too_fast.output)["feasible"] is False
+    bad = CliRunner().invoke(cli, [*args, "--out", str(tmp_path / "map.txt")])
+    assert bad.exit_code == 2
+    assert "png" in bad.output
