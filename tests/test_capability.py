@@ -19,7 +19,7 @@ from numpy.testing import assert_allclose
 from test_emns import SYNTHETIC
 
 from magrun.cli import cli
-from magrun.field.capability import pose_capability, reachable, trajectory_capability
+from magrun.field.capability import Site, pose_capability, reachable, trajectory_capability
 from magrun.field.coils import CoilSystem
 from magrun.field.mpem import import_mpem
 from magrun.protocol import load_protocol
@@ -52,15 +52,14 @@ def test_the_speed_along_the_axis_is_the_force_the_gradient_gives_over_the_drag(
     """Heading along x, moving along x: the force is m ∂Bx/∂x I₁ (largest at I₁ = I_max), the
     field along the moment I₀ · 1 mT (at least B_min), no torque: s = m g I_max / d∥."""
     B, G = _two_channels((1.0, 0.0))
-    limits = np.array([2.0, 3.0])
-    zero = (np.zeros(2), np.zeros((2, 2)))
-    cap = pose_capability(B, G, zero, limits, ROBOT, 0.0, [1.0, 0.0])
+    site = Site(B, G, np.zeros(2), np.zeros((2, 2)), np.array([2.0, 3.0]), ROBOT)
+    cap = pose_capability(site, 0.0, [1.0, 0.0])
     assert cap.speed_factor == pytest.approx(ROBOT.moment * 0.5 * 3.0 / ROBOT.drag_parallel)
     assert cap.currents is not None
     assert cap.currents[0] * 1e-3 >= ROBOT.min_aligned_field - 1e-12
     assert cap.currents[1] == pytest.approx(3.0)
     # across the axis the gradient pushes nothing: the robot cannot move sideways at all
-    side = pose_capability(B, G, zero, limits, ROBOT, 0.0, [0.0, 1.0])
+    side = pose_capability(site, 0.0, [0.0, 1.0])
     assert side.speed_factor == pytest.approx(0.0, abs=1e-9)
 
 
@@ -68,12 +67,12 @@ def test_a_pose_whose_heading_no_current_can_hold_is_not_holdable() -> None:
     """The only field is across the heading: holding it needs zero torque, so I₀ = 0, and
     then nothing is left along the moment (B_min > 0): no solution at all (NaN)."""
     B, G = _two_channels((0.0, 1.0))
-    zero = (np.zeros(2), np.zeros((2, 2)))
-    cap = pose_capability(B, G, zero, np.array([2.0, 3.0]), ROBOT, 0.0, [1.0, 0.0])
+    site = Site(B, G, np.zeros(2), np.zeros((2, 2)), np.array([2.0, 3.0]), ROBOT)
+    cap = pose_capability(site, 0.0, [1.0, 0.0])
     assert math.isnan(cap.speed_factor)
     assert cap.currents is None
     # turned by 90° the field lies along the moment: held, and moving along it is possible
-    factor, offset = reachable(B, G, zero, np.array([2.0, 3.0]), ROBOT, 0.0, [0.0, 1e-3])
+    factor, offset = reachable(site, 0.0, [0.0, 1e-3])
     assert factor >= 1.0
     assert abs(offset) > 0
 
@@ -93,8 +92,8 @@ def test_the_currents_give_the_asked_wrench_on_a_three_coil_system(three: Path) 
         v = rng.normal(size=2) * 1e-3
         omega = rng.normal() * 0.2
         B, G = model.unit_field_and_gradient(p)
-        bg = model.background_field_and_gradient(p)
-        cap = pose_capability(B, G, bg, limits, ROBOT, theta, v, omega)
+        B0, G0 = model.background_field_and_gradient(p)
+        cap = pose_capability(Site(B, G, B0, G0, limits, ROBOT), theta, v, omega)
         if cap.currents is None:
             continue
         checked += 1

@@ -73,24 +73,41 @@ def _limits(max_current: float | ArrayLike, n: int) -> FloatArray:
     return limits
 
 
+@dataclass(frozen=True)
+class Site:
+    """What the coils give at one position: the channels' unit fields ``B`` (n, 2) T/A and
+    gradients ``G`` (n, 2, 2) T/(m A), the background's ``B0`` (2,) T and ``G0`` (2, 2) T/m,
+    each channel's current limit (n,) A, and the robot they act on."""
+
+    B: FloatArray
+    G: FloatArray
+    B0: FloatArray
+    G0: FloatArray
+    limits: FloatArray
+    robot: RobotParams
+
+
+def _sites(
+    model: PlanarFieldModel, robot: RobotParams, limits: FloatArray, positions: FloatArray
+) -> list[Site]:
+    """A :class:`Site` for each of ``positions`` (..., 2), m, flattened."""
+    flat = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    B, G = model.unit_field_and_gradient(flat)
+    B0, G0 = model.background_field_and_gradient(flat)
+    return [Site(B[k], G[k], B0[k], G0[k], limits, robot) for k in range(len(flat))]
+
+
 def pose_capability(
-    B: FloatArray,
-    G: FloatArray,
-    background: tuple[FloatArray, FloatArray],
-    limits: FloatArray,
-    robot: RobotParams,
-    theta: float,
-    velocity: ArrayLike,
-    turn_rate: float = 0.0,
+    site: Site, theta: float, velocity: ArrayLike, turn_rate: float = 0.0
 ) -> PoseCapability:
-    """The LP of the module doc at one pose: ``B`` (n, 2) T/A and ``G`` (n, 2, 2) T/(m A)
-    the channels' unit fields and gradients there, ``background`` its (B₀, G₀), ``velocity``
-    (2,) m/s and ``turn_rate`` rad/s asked."""
+    """The LP of the module doc at ``site`` for heading ``theta`` (rad), ``velocity`` (2,)
+    m/s and ``turn_rate`` rad/s asked."""
+    B, G, limits, robot = site.B, site.G, site.limits, site.robot
+    B0, G0 = site.B0, site.G0
     n = B.shape[0]
     m = robot.moment
     h = np.array([math.cos(theta), math.sin(theta)])
     hp = np.array([-h[1], h[0]])
-    B0, G0 = background
     F_req = drag_matrix(robot, theta) @ np.asarray(velocity, dtype=np.float64)
     # force per ampere: F_l = m Σ_j h_j G[j, l]
     force = m * np.einsum("j,cjl->lc", h, G)  # (2, n)
@@ -122,14 +139,7 @@ def pose_capability(
 
 
 def reachable(
-    B: FloatArray,
-    G: FloatArray,
-    background: tuple[FloatArray, FloatArray],
-    limits: FloatArray,
-    robot: RobotParams,
-    theta: float,
-    velocity: ArrayLike,
-    turn_rate: float = 0.0,
+    site: Site, theta: float, velocity: ArrayLike, turn_rate: float = 0.0
 ) -> tuple[float, float]:
     """:func:`pose_capability` at heading ``theta`` and, where that falls short of the asked
     velocity, at the headings :data:`HEADING_OFFSETS` away, until one reaches it: the factor
@@ -137,7 +147,7 @@ def reachable(
     and its offset."""
     best, at = math.nan, 0.0
     for delta in HEADING_OFFSETS:
-        cap = pose_capability(B, G, background, limits, robot, theta + delta, velocity, turn_rate)
+        cap = pose_capability(site, theta + delta, velocity, turn_rate)
         if cap.speed_factor > best or math.isnan(best):
             best, at = cap.speed_factor, float(delta)
         if best >= REACHED:
@@ -211,8 +221,9 @@ def workspace_capability(
     axis = np.linspace(-half_width, half_width, points)
     thetas = np.arange(headings) * (2 * math.pi / headings)
     grid = np.stack(np.meshgrid(axis, axis), axis=-1)  # (ny, nx, 2): [i, j] = (x_j, y_i)
-    B, G = model.unit_field_and_gradient(grid)
-    B0, G0 = model.background_field_and_gradient(grid)
+    sites = _sites(model, robot, limits, grid)  # row-major: site i·points + j
+    B = np.stack([site.B for site in sites]).reshape(points, points, n, 2)
+    B0 = np.stack([site.B0 for site in sites]).reshape(points, points, 2)
     speed_here = np.full((points, points, headings), math.nan)
     force = np.full((points, points, headings), math.nan)
     directions = np.arange(FIELD_DIRECTIONS) * (2 * math.pi / FIELD_DIRECTIONS)
@@ -223,18 +234,18 @@ def workspace_capability(
     reaches = None if speed is None else np.zeros((points, points, headings), dtype=bool)
     for i in range(points):
         for j in range(points):
-            here = (B[i, j], G[i, j], (B0[i, j], G0[i, j]), limits, robot)
+            here = sites[i * points + j]
             for k, theta in enumerate(thetas):
                 h = np.array([math.cos(theta), math.sin(theta)])
                 # at a unit speed (1 m/s) along the axis, the factor is the speed itself
-                cap = pose_capability(*here, float(theta), h)
+                cap = pose_capability(here, float(theta), h)
                 speed_here[i, j, k] = cap.speed_factor
                 if cap.currents is not None:
                     force[i, j, k] = cap.speed_factor * robot.drag_parallel
                 if reaches is not None and speed is not None:
                     reaches[i, j, k] = (
                         cap.speed_factor >= REACHED * speed
-                        or reachable(*here, float(theta), speed * h)[0] >= REACHED
+                        or reachable(here, float(theta), speed * h)[0] >= REACHED
                     )
     return WorkspaceCapability(
         axis, axis, thetas.astype(np.float64), speed_here, force, field, robot.moment * field,
@@ -283,15 +294,11 @@ def trajectory_capability(
     t = np.linspace(0.0, reference.duration, samples)
     poses = reference.pose(t)
     rates = np.gradient(poses, t, axis=0)  # (samples, 3): vx, vy, ω
-    B, G = model.unit_field_and_gradient(poses[:, :2])
-    B0, G0 = model.background_field_and_gradient(poses[:, :2])
+    sites = _sites(model, robot, limits, poses[:, :2])
     factor = np.full(samples, math.nan)
     offset = np.zeros(samples)
-    for k in range(samples):
-        factor[k], offset[k] = reachable(
-            B[k], G[k], (B0[k], G0[k]), limits, robot, float(poses[k, 2]), rates[k, :2],
-            float(rates[k, 2]),
-        )  # fmt: skip
+    for k, site in enumerate(sites):
+        factor[k], offset[k] = reachable(site, float(poses[k, 2]), rates[k, :2], float(rates[k, 2]))
         if first and not factor[k] >= REACHED:
             samples = k + 1
             break
