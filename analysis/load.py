@@ -425,6 +425,7 @@ def load(
                 status=entry.get("status", "ok"),
                 error=entry.get("error", ""),
                 warnings="; ".join(entry.get("warnings") or []),
+                lost=entry.get("lost"),
             )
             if row["status"] != "ok" and not mcap_path.is_file():
                 rows.append(row)

@@ -43,6 +43,12 @@ class HealthLimits:
     #: more ticks than this share whose measured compute exceeded the control period (the
     #: controller, with tracking, is too slow for the rig at this rate)
     overruns: float = 0.01
+    #: the robot counts as lost when it is further from the reference than ``lost_extent``
+    #: of the reference's extent (the diagonal of its bounding box; at least ``lost_floor``,
+    #: m) in at least ``lost_share`` of the ticks: not a large error, the task given up
+    lost_extent: float = 0.25
+    lost_floor: float = 2e-3
+    lost_share: float = 0.25
 
 
 def longest_run(mask: NDArray[np.bool_]) -> int:
@@ -121,7 +127,9 @@ def trial_health(
     Returns
     -------
     figures : dict
-        ``failed_solves`` (count), ``longest_saturation_s``, ``max_estimate_error_mm``; with
+        ``failed_solves`` (count), ``longest_saturation_s``, ``max_estimate_error_mm``,
+        ``lost`` (the robot lost: :class:`HealthLimits`) and ``lost_share`` (the share of
+        ticks beyond the loss distance); with
         a critical boundary, ``critical_contact_s``; with ``predict``,
         ``prediction_sigma_mm`` and ``prediction_sigma_deg``.
     warnings : list of str
@@ -135,16 +143,30 @@ def trial_health(
     err = np.hypot(*(log.estimated[:, :2] - log.actual[:, :2]).T)
     finite = err[np.isfinite(err)]
     worst = float(finite.max()) if finite.size else math.nan
+    desired = log.desired[:, :2]
+    extent = float(np.hypot(*np.ptp(desired, axis=0))) if n else 0.0
+    far = max(lim.lost_extent * extent, lim.lost_floor)
+    error = np.hypot(*(log.actual[:, :2] - desired).T)
+    # a NaN pose (a rig's tracking that lost the robot) is as far as any
+    beyond = float(np.mean(~(error <= far))) if n else 0.0
+    lost = beyond >= lim.lost_share
     figures: dict[str, Any] = {
         "failed_solves": int(failed),
         "longest_saturation_s": float(longest),
         "max_estimate_error_mm": worst * 1e3,
+        "lost": bool(lost),
+        "lost_share": beyond,
     }
     if predict is not None:
         sigma, sigma_angle = prediction_error(log, dt, predict, frame_ticks)
         figures["prediction_sigma_mm"] = sigma * 1e3
         figures["prediction_sigma_deg"] = math.degrees(sigma_angle)
     warnings: list[str] = []
+    if lost:
+        warnings.append(
+            f"the robot was lost: more than {far * 1e3:.1f} mm from the reference in "
+            f"{beyond:.0%} of the ticks"
+        )
     if n and failed > lim.failed_solves * n:
         warnings.append(f"{failed} failed solves in {n} ticks (the previous plan was used)")
     if longest > lim.saturation_s:

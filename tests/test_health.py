@@ -56,6 +56,38 @@ def test_saturation_failed_solves_and_a_lost_estimate_are_reported() -> None:
     assert "t = 2.8 s" in warnings[2]
 
 
+def test_a_robot_far_from_the_reference_long_enough_is_lost() -> None:
+    """The reference runs 10 mm along x: the loss distance is a quarter of that, 2.5 mm. A
+    robot 3 mm off in 30 of 100 ticks is lost (≥ 25 %), in 20 it is not; 2 mm off in every
+    tick is an error, not a loss; a tick without a pose (NaN) counts as far."""
+    log = _log()
+    log.actual[:30, 1] = 3e-3
+    figures, warnings = trial_health(log, 0.04, 30.0)
+    assert figures["lost"] is True
+    assert figures["lost_share"] == pytest.approx(0.30)
+    assert (
+        warnings[0] == "the robot was lost: more than 2.5 mm from the reference in 30% of the ticks"
+    )
+    log.actual[20:30, 1] = 0.0
+    assert trial_health(log, 0.04, 30.0)[0]["lost"] is False
+    log.actual[:, 1] = 2e-3
+    assert trial_health(log, 0.04, 30.0)[0]["lost"] is False
+    log.actual[:, 1] = 0.0
+    log.actual[75:, :] = np.nan
+    assert trial_health(log, 0.04, 30.0)[0]["lost"] is True
+
+
+def test_holding_still_the_loss_distance_is_its_floor() -> None:
+    """A reference that stays put has no extent: the loss distance is lost_floor (2 mm)."""
+    log = _log()
+    log.desired[:] = log.desired[0]
+    log.actual[:] = log.desired[0]
+    log.actual[:50, 0] += 2.5e-3
+    figures, _ = trial_health(log, 0.04, 30.0)
+    assert figures["lost"] is True
+    assert trial_health(log, 0.04, 30.0, limits=HealthLimits(lost_floor=3e-3))[0]["lost"] is False
+
+
 def test_ticks_whose_compute_overran_the_period_are_flagged() -> None:
     """1 overrunning tick in 100 is within the 1 % limit; 2 are flagged, with the longest."""
     log = _log()

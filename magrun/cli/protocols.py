@@ -88,7 +88,8 @@ class _RunProgress:
             rms = entry.get("rms_position_mm")
             click.echo(
                 f"[{self.done}/{self.total}] {entry['protocol']}/{entry['path']}: "
-                f"{entry['status']}" + (f", RMS {rms:.3f} mm" if rms is not None else "")
+                f"{entry['status']}" + (", the robot LOST" if entry.get("lost") else "")
+                + (f", RMS {rms:.3f} mm" if rms is not None else "")
                 + (f" ({entry['wall_s']:.0f} s)" if entry.get("wall_s") is not None else ""),
                 err=True,
             )  # fmt: skip
@@ -107,7 +108,7 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
         groups.setdefault(e["path"].rsplit("/", 1)[0], []).append(e)
     width = max(len(k) for k in groups)
     lines = [
-        f"{'condition':<{width}}  ok   RMS mm  RMS deg  overrun  dropped  wall s",
+        f"{'condition':<{width}}  ok   lost  RMS mm  RMS deg  overrun  dropped  wall s",
     ]
 
     def shown(value: float, spec: str, width: int) -> str:
@@ -123,7 +124,8 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
         ticks = sum(e.get("ticks", 0) for e in ok)
         overrun = sum(e.get("overruns", 0) for e in ok) / ticks if ticks else math.nan
         lines.append(
-            f"{slug:<{width}}  {len(ok)}/{len(entries)}  {shown(mean('rms_position_mm'), '.3f', 6)}"
+            f"{slug:<{width}}  {len(ok)}/{len(entries)}  {sum(bool(e.get('lost')) for e in ok):4d}"
+            f"  {shown(mean('rms_position_mm'), '.3f', 6)}"
             f"  {shown(mean('rms_orientation_deg'), '.2f', 7)}  {shown(overrun, '.0%', 7)}"
             f"  {sum(e.get('dropped_ticks', 0) for e in entries):7d}"
             f"  {sum(e.get('wall_s', 0.0) for e in entries):6.0f}"
