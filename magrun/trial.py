@@ -386,13 +386,27 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     return coils
 
 
+#: check_reach's verdicts in this process, by system, limits, robot and trajectory (a test
+#: session or a campaign runs the same protocol many times)
+_REACH: dict[tuple[Any, ...], Any] = {}
+
+
 def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> None:
     """A :class:`RunError` where the coils cannot move ``robot`` along ``reference`` (the
     nominal robot, the system's lookup-table model, its current limits)."""
     from magrun.field.capability import trajectory_capability
 
-    model = system_models(coils.folder)[1]
-    reach = trajectory_capability(model, robot, coils.max_current, reference, 200, first=True)
+    key = (
+        coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot),
+        reference.t.tobytes(), reference.poses.tobytes(),
+    )  # fmt: skip
+    reach = _REACH.get(key)
+    if reach is None:
+        model = system_models(coils.folder)[1]
+        reach = trajectory_capability(model, robot, coils.max_current, reference, 200, True)
+        if len(_REACH) >= 32:
+            _REACH.clear()
+        _REACH[key] = reach
     if reach.feasible:
         return
     k = len(reach.t) - 1  # the first pose out of reach

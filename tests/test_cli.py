@@ -515,7 +515,7 @@ def test_bad_input_is_named_with_exit_2(
 
 def test_run_summary_names_trials_that_did_not_complete() -> None:
     """Pending, interrupted and failed trials each get a line with their reason; a condition
-    with no complete trial shows dashes, never nan."""
+    with no complete trial shows dashes, never nan; lost robots are counted."""
     from magrun.cli.protocols import _summary
 
     base = {"protocol": "p", "ticks": 0, "dropped_ticks": 0, "wall_s": 1.0}
@@ -523,6 +523,8 @@ def test_run_summary_names_trials_that_did_not_complete() -> None:
         "trials": [
             {**base, "path": "a/trial-0", "status": "ok", "rms_position_mm": 1.0,
              "rms_orientation_deg": 2.0, "ticks": 10, "overruns": 1},
+            {**base, "path": "a/trial-1", "status": "ok", "rms_position_mm": 9.0,
+             "rms_orientation_deg": 2.0, "ticks": 10, "overruns": 1, "lost": True},
             {**base, "path": "b/trial-0", "status": "interrupted",
              "error": "stopped by SIGINT at t = 1.20 s"},
             {**base, "path": "b/trial-1", "status": "pending"},
@@ -532,8 +534,9 @@ def test_run_summary_names_trials_that_did_not_complete() -> None:
     lines = _summary(manifest)
     text = "\n".join(lines)
     assert "nan" not in text
-    assert lines[1].split()[:5] == ["a", "1/1", "1.000", "2.00", "10%"]
-    assert lines[2].split()[:5] == ["b", "0/2", "—", "—", "—"]
+    # a lost trial is complete (ok) and counted in the lost column and the means
+    assert lines[1].split()[:6] == ["a", "2/2", "1", "5.000", "2.00", "10%"]
+    assert lines[2].split()[:6] == ["b", "0/2", "0", "—", "—", "—"]
     assert "INTERRUPTED b/trial-0: stopped by SIGINT at t = 1.20 s" in lines
     assert "PENDING b/trial-1: not started (magrun run --resume runs it)" in lines
     assert "FAILED c/trial-0: no error recorded" in lines
