@@ -97,6 +97,14 @@ def _sites(
     return [Site(B[k], G[k], B0[k], G0[k], limits, robot) for k in range(len(flat))]
 
 
+def largest_field(site: Site) -> float:
+    """The largest field magnitude, T, the currents make at ``site``: over directions d, the
+    largest Σ_c |d·B_c| I_max,c + d·B₀ (:data:`FIELD_DIRECTIONS` of them)."""
+    angles = np.arange(FIELD_DIRECTIONS) * (2 * math.pi / FIELD_DIRECTIONS)
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=-1)  # (nd, 2)
+    return float((np.abs(d @ site.B.T) @ site.limits + d @ site.B0).max())
+
+
 def pose_capability(
     site: Site, theta: float, velocity: ArrayLike, turn_rate: float = 0.0
 ) -> PoseCapability:
@@ -165,18 +173,27 @@ class WorkspaceCapability:
     #: the speed the robot can hold moving along its axis, m/s (0: it cannot move; NaN: it
     #: cannot even hold the heading there), (ny, nx, nθ)
     speed: FloatArray
-    #: the largest force along the heading while holding it, N, (ny, nx, nθ)
-    force: FloatArray
     #: the largest field the coils make there, T (any direction), (ny, nx)
     field: FloatArray
-    #: the largest torque on the robot, N m: m times the largest field, (ny, nx)
-    torque: FloatArray
+    drag: float  # N s/m, the robot's along its axis
+    moment: float  # A m², the robot's
 
     #: with a speed asked: per position and direction of travel (the headings' directions),
     #: whether some heading lets the robot move that way at that speed, (ny, nx, nθ)
     reaches: NDArray[np.bool_] | None = None
     #: the speed asked, m/s
     asked: float | None = None
+
+    @property
+    def force(self) -> FloatArray:
+        """The largest force along the heading while holding it, N, (ny, nx, nθ): the drag
+        at the speed it holds."""
+        return self.speed * self.drag
+
+    @property
+    def torque(self) -> FloatArray:
+        """The largest torque on the robot, N m, (ny, nx): its moment in the largest field."""
+        return self.field * self.moment
 
     def summary(self) -> dict[str, Any]:
         """The figures ``magrun field check`` prints (SI in, the units named in the keys)."""
@@ -222,15 +239,8 @@ def workspace_capability(
     thetas = np.arange(headings) * (2 * math.pi / headings)
     grid = np.stack(np.meshgrid(axis, axis), axis=-1)  # (ny, nx, 2): [i, j] = (x_j, y_i)
     sites = _sites(model, robot, limits, grid)  # row-major: site i·points + j
-    B = np.stack([site.B for site in sites]).reshape(points, points, n, 2)
-    B0 = np.stack([site.B0 for site in sites]).reshape(points, points, 2)
     speed_here = np.full((points, points, headings), math.nan)
-    force = np.full((points, points, headings), math.nan)
-    directions = np.arange(FIELD_DIRECTIONS) * (2 * math.pi / FIELD_DIRECTIONS)
-    d = np.stack([np.cos(directions), np.sin(directions)], axis=-1)  # (nd, 2)
-    # the largest |B| over the box: max over directions d of Σ_c |d·B_c| I_c + d·B₀
-    field = np.abs(np.einsum("dk,yxck->yxdc", d, B)) @ limits + np.einsum("dk,yxk->yxd", d, B0)
-    field = field.max(axis=2)
+    field = np.array([largest_field(site) for site in sites]).reshape(points, points)
     reaches = None if speed is None else np.zeros((points, points, headings), dtype=bool)
     for i in range(points):
         for j in range(points):
@@ -240,16 +250,14 @@ def workspace_capability(
                 # at a unit speed (1 m/s) along the axis, the factor is the speed itself
                 cap = pose_capability(here, float(theta), h)
                 speed_here[i, j, k] = cap.speed_factor
-                if cap.currents is not None:
-                    force[i, j, k] = cap.speed_factor * robot.drag_parallel
                 if reaches is not None and speed is not None:
                     reaches[i, j, k] = (
                         cap.speed_factor >= REACHED * speed
                         or reachable(here, float(theta), speed * h)[0] >= REACHED
                     )
     return WorkspaceCapability(
-        axis, axis, thetas.astype(np.float64), speed_here, force, field, robot.moment * field,
-        reaches, speed,
+        axis, axis, thetas.astype(np.float64), speed_here, field, robot.drag_parallel,
+        robot.moment, reaches, speed,
     )  # fmt: skip
 
 
