@@ -413,7 +413,8 @@ def field_check(
 
 
 def _capability_figure(cap: Any, summary: dict[str, Any], out: Path) -> None:
-    """Three maps: the speed at the worst heading, the largest force, the largest field."""
+    """Three maps: the share of headings the coils can hold, the speed along the axis at the
+    best heading, the largest field."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -421,16 +422,18 @@ def _capability_figure(cap: Any, summary: dict[str, Any], out: Path) -> None:
 
     from magrun import atomic
 
-    held = np.where(np.isfinite(cap.speed), cap.speed, 0.0)
+    held = np.isfinite(cap.speed)
     panels = [
-        ("speed along the axis, worst heading [mm/s]", held.min(axis=2) * 1e3),
-        ("largest force along the axis [µN]", np.nan_to_num(cap.force).max(axis=2) * 1e6),
-        ("largest field [mT]", cap.field * 1e3),
-    ]
+        ("headings held [%]", held.mean(axis=2) * 100, (0.0, 100.0)),
+        ("speed along the axis, best heading [mm/s]",
+         np.where(held, cap.speed, 0.0).max(axis=2) * 1e3, (0.0, None)),
+        ("largest field [mT]", cap.field * 1e3, (0.0, None)),
+    ]  # fmt: skip
     extent = [cap.x[0] * 1e3, cap.x[-1] * 1e3, cap.y[0] * 1e3, cap.y[-1] * 1e3]
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), constrained_layout=True)
-    for ax, (title, values) in zip(axes, panels, strict=True):
-        image = ax.imshow(values, origin="lower", extent=extent, cmap="viridis")
+    for ax, (title, values, (low, high)) in zip(axes, panels, strict=True):
+        top = high if high is not None else max(float(values.max()), 1e-9)
+        image = ax.imshow(values, origin="lower", extent=extent, cmap="viridis", vmin=low, vmax=top)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("y [mm]")
