@@ -129,6 +129,7 @@ def run_trial(
     controller: Controller,
     rig: Rig,
     reference: Trajectory,
+    planned: Trajectory | None = None,
     feedback: Feedback = perfect_feedback,
     horizon: int = 20,
     duration: float | None = None,
@@ -142,6 +143,9 @@ def run_trial(
     safety: SafetyLayer | None = None,
 ) -> TrialLog:
     """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
+
+    The controller follows ``planned`` (default: ``reference``), a reference of the same
+    timing whose headings the coils can hold; the log's desired poses are ``reference``'s.
 
     With a ``tracker``, the controller's feedback comes from the rig's camera frames (the rig
     must have a camera); without one, from the actual pose. Give a fresh ``feedback`` per
@@ -183,6 +187,7 @@ def run_trial(
     safety.reset()
     total = reference.duration + 1.0 if duration is None else duration
     n_nominal = math.floor(total / dt + 1e-9) + 1
+    plan = reference if planned is None else planned
     start = reference.pose(0.0)
     rig.reset(start)
     controller.reset(start)
@@ -216,8 +221,8 @@ def run_trial(
             camera_pose = tracker(obs.frame)
         z = feedback(obs.t, camera_pose) if take else None
         # the plan starts when its currents apply, the controller's latency from now
-        window = reference.pose(obs.t + lead + offsets) if lead else reference.pose(obs.t + offsets)
-        desired = reference.pose(obs.t) if lead else window[0]
+        window = plan.pose(obs.t + lead + offsets)
+        desired = reference.pose(obs.t) if lead or plan is not reference else window[0]
         # a frame's age (its time stamp): the controller fuses it where it was taken
         age = obs.t - obs.frame_time if z is not None and obs.frame_time is not None else 0.0
         out = controller.step(z, window, age)
@@ -252,7 +257,7 @@ def run_trial(
             on_tick(tick)
         prediction = out.predicted
         # the next tick's work that needs no measurement, while the plant runs on
-        controller.prepare(reference.pose(obs.t + period + lead + offsets))
+        controller.prepare(plan.pose(obs.t + period + lead + offsets))
         rest = period - charged
         if rest > 0:
             rig.advance(rest)

@@ -269,6 +269,17 @@ class ControllerSettings(_Strict):
         25.5, description="Control rate, Hz."
     )
     horizon: Annotated[int, Field(ge=1, le=100)] = Field(20, description="NMPC horizon, ticks.")
+    step_damping: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
+        Field(
+            "auto",
+            description=(
+                "The NMPC's step damping (a Levenberg-Marquardt term on each real-time "
+                "iteration's step, per (I/I_max)^2); 'auto': 1 where the coils cannot hold the "
+                "reference's heading along the trajectory (the planner then follows headings "
+                "they can), else 0."
+            ),
+        )
+    )
     latency_ms: Annotated[float, Field(ge=0, le=MAX_LATENCY_MS)] | Literal["measured", "none"] = (
         Field(
             DEFAULT_LATENCY_MS,

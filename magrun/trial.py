@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.calibration import gains_in_order, load_coil_gains
+from magrun.control import NMPC_METHODS
 from magrun.control.base import Controller
 from magrun.control.estimation import KalmanConfig
 from magrun.control.methods import ControlConfig, make_controller, shipped_models
@@ -284,6 +285,7 @@ class TrialParts:
     safety: SafetyLayer
     simulated: bool
     controller_build_s: float  # wall time of the controller's build (solvers, models)
+    planned: Trajectory  # the reference the controller follows (ControllerParts.planned)
 
     @property
     def protocol(self) -> Protocol:
@@ -315,7 +317,8 @@ class TrialParts:
         protocol = self.protocol
         fluoroscopy_frames = protocol.feedback.camera_frames == "fluoroscopy"
         return run_trial(
-            self.controller, self.rig, self.scene.reference, feedback=self.feedback,
+            self.controller, self.rig, self.scene.reference, planned=self.planned,
+            feedback=self.feedback,
             horizon=self.horizon, duration=self.duration, progress=progress,
             tracker=self.tracker, on_tick=on_tick,
             frame_due=self.feedback.due if fluoroscopy_frames else None,
@@ -334,6 +337,9 @@ class ControllerParts:
     free_space: FreeSpace
     controller: Controller
     build_s: float  # wall time of the controller's build (solvers, models)
+    #: the reference the controller follows: the scene's, with the headings the coils can
+    #: hold (:func:`planned_reference`; the scene's own object where they hold its own)
+    planned: Trajectory
 
 
 def system_of(protocol: Protocol) -> CoilSystem:
@@ -386,6 +392,42 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     return coils
 
 
+#: the NMPC's step damping where the planner's headings leave the reference's (``auto``): the
+#: currents' own weight, R = 1 per (I / I_max)²
+HELD_DAMPING = 1.0
+#: planned_reference's results in this process, keyed as check_reach's
+_PLANNED: dict[tuple[Any, ...], Trajectory] = {}
+
+
+def _reach_key(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> tuple[Any, ...]:
+    return (
+        coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot),
+        reference.t.tobytes(), reference.poses.tobytes(),
+    )  # fmt: skip
+
+
+def planned_reference(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> Trajectory:
+    """``reference`` with the headings the coils can hold (the nominal robot, the system's
+    lookup-table model, its limits; :func:`magrun.field.capability.held_reference`):
+    ``reference`` itself where they hold its own heading throughout."""
+    from magrun.field.capability import held_reference
+
+    key = _reach_key(coils, reference, robot)
+    planned = _PLANNED.get(key)
+    if planned is None:
+        model = system_models(coils.folder)[1]
+        planned, _ = held_reference(model, robot, coils.max_current, reference)
+        if len(_PLANNED) >= 32:
+            _PLANNED.clear()
+        _PLANNED[key] = planned
+    # the cached trajectory stands for this reference: the same object where unchanged
+    return (
+        reference
+        if planned.poses is reference.poses or np.array_equal(planned.poses, reference.poses)
+        else planned
+    )
+
+
 #: check_reach's verdicts in this process, by system, limits, robot and trajectory (a test
 #: session or a campaign runs the same protocol many times)
 _REACH: dict[tuple[Any, ...], Any] = {}
@@ -396,10 +438,7 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
     nominal robot, the system's lookup-table model, its current limits)."""
     from magrun.field.capability import trajectory_capability
 
-    key = (
-        coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot),
-        reference.t.tobytes(), reference.poses.tobytes(),
-    )  # fmt: skip
+    key = _reach_key(coils, reference, robot)
     reach = _REACH.get(key)
     if reach is None:
         model = system_models(coils.folder)[1]
@@ -466,6 +505,14 @@ def build_controller(
     scene = build_scene(protocol, coils)
     robot = protocol.robot_params()
     config = control_config(protocol.controller, robot, trial.condition)
+    # the NMPC plans the heading with the currents: it follows headings the coils can hold
+    # (the two-layer baselines allocate a force and a field of their own choosing)
+    nmpc = trial.method in NMPC_METHODS
+    planned = planned_reference(coils, scene.reference, robot) if nmpc else scene.reference
+    damping = protocol.controller.step_damping
+    if damping == "auto":  # module doc of magrun.control.nmpc, "Step damping"
+        damping = HELD_DAMPING if planned is not scene.reference else 0.0
+    config = replace(config, nmpc=replace(config.nmpc, step_damping=float(damping)))
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)
@@ -476,7 +523,9 @@ def build_controller(
         trial.method, robot, config, zernike=zernike, lut=lut, free_space=free_space,
         coil_gains=gains,
     )  # fmt: skip
-    return ControllerParts(scene, robot, config, free_space, controller, time.perf_counter() - t0)
+    return ControllerParts(
+        scene, robot, config, free_space, controller, time.perf_counter() - t0, planned
+    )
 
 
 def assemble(
@@ -538,7 +587,7 @@ def assemble(
         raise
     return TrialParts(
         trial, robot, scene, parts.free_space, parts.config, controller, the_rig, tracker,
-        feedback, safety, simulated, parts.build_s,
+        feedback, safety, simulated, parts.build_s, parts.planned,
     )  # fmt: skip
 
 

@@ -19,7 +19,16 @@ from numpy.testing import assert_allclose
 from test_emns import SYNTHETIC
 
 from magrun.cli import cli
-from magrun.field.capability import Site, pose_capability, reachable, trajectory_capability
+from magrun.field.capability import (
+    HELD_SAMPLES,
+    HELD_SPARE,
+    Site,
+    _sites,
+    held_reference,
+    pose_capability,
+    reachable,
+    trajectory_capability,
+)
 from magrun.field.coils import CoilSystem
 from magrun.field.mpem import import_mpem
 from magrun.protocol import load_protocol
@@ -160,3 +169,65 @@ def test_field_check_prints_a_summary_and_draws_the_map(three: Path, tmp_path: P
     bad = CliRunner().invoke(cli, [*args, "--out", str(tmp_path / "map.txt")])
     assert bad.exit_code == 2
     assert "png" in bad.output
+
+
+#: three dipole coils 120° apart, 50 mm from the centre and pointing at it (docs/systems.md)
+TRI = "Coil_List: [c0, c1, c2]\n" + "".join(
+    f"{name}:\n  Source_List: [s]\n  s: {{Source_Position: [{x}, {y}, 0.0], "
+    f"Source_Direction: [{dx}, {dy}, 0.0], B_Coeff: [2.0e-7]}}\n"
+    for name, x, y, dx, dy in (
+        ("c0", 0.0, 0.05, 0.0, -1.0),
+        ("c1", -0.043301, -0.025, 0.866025, 0.5),
+        ("c2", 0.043301, -0.025, -0.866025, 0.5),
+    )
+)
+
+
+def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
+    """On three symmetric coils the S's own heading cannot be held on much of it (no
+    currents give the force and hold the heading there): the planned reference keeps the
+    positions and timing, turns the headings there, and at each checked pose its offset
+    (before smoothing) is one at which the coils give the velocity HELD_SPARE times over,
+    where the reference's own heading does not; elsewhere it is zero."""
+    (tmp_path / "tri.yaml").write_text(TRI)
+    folder = import_mpem(tmp_path / "tri.yaml", tmp_path / "tri", 0.0, (0.0, 0.0), 10e-3)
+    model = system_models(folder)[1]
+    reference = s_trajectory(size=12e-3, speed=1e-3)
+    planned, offsets = held_reference(model, ROBOT, 10.0, reference)
+    assert planned is not reference
+    assert_allclose(planned.t, reference.t)
+    assert_allclose(planned.poses[:, :2], reference.poses[:, :2])
+    t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
+    poses = reference.pose(t)
+    rates = np.gradient(poses, t, axis=0)
+    sites = _sites(model, ROBOT, np.full(3, 10.0), poses[:, :2])
+
+    def factor(k: int, offset: float) -> float:
+        cap = pose_capability(sites[k], poses[k, 2] + offset, rates[k, :2], rates[k, 2])
+        return cap.speed_factor
+
+    turned = np.flatnonzero(offsets)
+    assert 0.2 < len(turned) / HELD_SAMPLES < 0.8  # the S's second half, about (49 % here)
+    for k in turned[:: max(1, len(turned) // 25)]:  # 25 of them: an LP each
+        assert not factor(k, 0.0) >= HELD_SPARE
+        assert factor(k, offsets[k]) >= HELD_SPARE
+    for k in np.flatnonzero(offsets == 0)[::40]:
+        assert factor(k, 0.0) >= HELD_SPARE
+    # the planned headings are the reference's plus the smoothed offsets: within their range
+    turn = planned.poses[:, 2] - reference.poses[:, 2]
+    assert turn.min() >= offsets.min() - 1e-12
+    assert turn.max() <= offsets.max() + 1e-12
+
+
+def test_a_reference_the_coils_hold_is_planned_as_it_is() -> None:
+    """The paper rig's S for the magnet robot (its protocol's) is held at every pose: the
+    planner gets the reference object itself, so nothing of the paper rig's trials changes."""
+    protocol = load_protocol(ROOT / "protocols" / "rate.yaml")
+    coils = check_system(protocol, feasibility=False)
+    from magrun.trial import build_scene
+
+    reference = build_scene(protocol, coils).reference
+    model = system_models(coils.folder)[1]
+    planned, offsets = held_reference(model, load_robot("magnet"), coils.max_current, reference)
+    assert planned is reference
+    assert not offsets.any()

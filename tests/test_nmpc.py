@@ -209,6 +209,36 @@ def test_rti_converges_to_the_ipopt_optimum(
         assert np.max(X[:, 0]) == pytest.approx(rti.problem.pos_max, abs=1e-4)
 
 
+def test_step_damping_shortens_the_steps_not_the_optimum(zernike_model, magnet_robot) -> None:
+    """The step damping (a Levenberg-Marquardt term on each step) leaves the iteration's fixed
+    point where it was: iterated to convergence from rest, the damped RTI reaches the IPOPT
+    optimum of the tracking problem within 1e-4 of the limit, as the undamped one does; its
+    first step is shorter (the same first QP with the proximal term added)."""
+    _, u_ipopt = _ipopt(zernike_model, magnet_robot, "track")
+    state, ref, previous = _problem("track")
+    firsts = []
+    for mu in (0.0, 1.0):
+        cfg = NMPCConfig(tol=1e-10, step_damping=mu, first_tick_iterations=1,
+                         step_tolerance=1e-10)  # fmt: skip
+        one = NMPC(zernike_model, magnet_robot, cfg)
+        first = one.plan(state, ref, previous)
+        assert first.status.success, first.status
+        firsts.append(np.abs(first.currents).max())
+        converged = NMPC(zernike_model, magnet_robot,
+                         replace(cfg, first_tick_iterations=3000))  # fmt: skip
+        assert converged.plan(state, ref, previous).status.success
+        u = converged.backend.currents_plan()
+        assert u is not None
+        assert_allclose(u, u_ipopt, atol=1e-4)
+    assert firsts[1] < 0.9 * firsts[0]
+
+
+def test_step_damping_must_be_a_number_at_least_zero(zernike_model, magnet_robot) -> None:
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="step_damping"):
+            NMPC(zernike_model, magnet_robot, NMPCConfig(step_damping=bad, compile=False))
+
+
 def test_damped_corrective_iterations_leave_a_cycle_that_full_steps_keep(zernike_model) -> None:
     """A tick of the spine phantom on the bench (the capsule at the channel's apex, its
     estimate just moved 0.56 mm toward the critical wall by a frame), the NMPC as the phantom

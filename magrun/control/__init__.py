@@ -4,3 +4,5 @@ CasADi): the protocol schema reads :data:`METHODS` from it."""
 
 #: the paper's proposed method and its five baselines, as protocols and recordings name them
 METHODS = ("proposed", "baseline1", "baseline2", "baseline3", "baseline4", "baseline5")
+#: the methods whose planner is the NMPC on the coil currents (:mod:`magrun.control.methods`)
+NMPC_METHODS = ("proposed", "baseline1", "baseline5")

@@ -22,7 +22,7 @@ from functools import cache
 
 from numpy.typing import ArrayLike
 
-from magrun.control import METHODS
+from magrun.control import METHODS, NMPC_METHODS
 from magrun.control.base import Controller, Estimator, Planner
 from magrun.control.estimation import (
     HoldLastMeasurement,
@@ -95,7 +95,7 @@ def make_controller(
         )
     planner: Planner
     estimator: Estimator
-    if method in ("proposed", "baseline1", "baseline5"):
+    if method in NMPC_METHODS:
         model = lut if method == "baseline5" else zernike
         planner = NMPC(model, params, nmpc_cfg, free_space)
         estimator = (

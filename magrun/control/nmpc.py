@@ -119,6 +119,16 @@ IPOPT's optimum for the same tick (tests/test_nmpc.py); the capsule turned and t
 wall. Half steps reach IPOPT's currents within a few ticks. A tick whose heading holds takes
 its one full step, as before.
 
+Step damping. With ``step_damping`` = μ > 0 every QP's cost gains μ/2 |Δz|² on its step Δz
+(states and currents, scaled units), a Levenberg–Marquardt term: the iteration's fixed points
+(the optimum) stay where they are, each step is shorter. On a coil system that cannot hold the
+reference's heading everywhere (three coils: :func:`magrun.field.capability.held_reference`)
+the currents that give the force and hold a heading jump from one family to another, and full
+steps alternated between them tick by tick: on the three-coil system of docs/systems.md the
+proposed method lost the robot in every seed, its QPs failing from there on; with μ = 1 and
+the held headings it tracked in all six. A protocol's ``controller.step_damping: auto`` gives
+μ = 1 exactly there and 0 elsewhere (the paper rig's and OctoMag's trials are unchanged).
+
 The tick splits in two (:meth:`NMPC.prepare`, called by the control loop after the currents
 went out): the preparation linearises every stage around the shifted plan, stage 0 at the
 state predicted for the next tick; the feedback (:meth:`NMPC.plan`) embeds the measured
@@ -232,6 +242,9 @@ class NMPCConfig:
     # 1e-3 with exact feedback and below 0.12 (p99) under 2 mm noise at 3 and 25.5 Hz; a
     # three-coil system wobbling about its heading went to 1e3
     max_embedding_defect: float = 1.0
+    # RTI: a Levenberg–Marquardt term μ/2 |step|² on every QP's step (scaled units; module
+    # doc, "Step damping"); 0: full Gauss–Newton steps
+    step_damping: float = 0.0
     hpipm: dict[str, Any] = field(default_factory=dict)
     # RTI: the QP through magrun's compiled kernel around HPIPM ("direct", falling back to
     # "casadi" where it cannot be built) or through CasADi's HPIPM interface ("casadi")
@@ -265,6 +278,8 @@ class NMPC(Planner):
             raise ValueError(
                 f"unknown soft_constraints {cfg.soft_constraints!r}; choose slack or penalty"
             )
+        if not (math.isfinite(cfg.step_damping) and cfg.step_damping >= 0):
+            raise ValueError(f"step_damping must be a number >= 0, got {cfg.step_damping}")
         self.model = field_model
         self.robot = robot
         coils = field_model.coils
@@ -813,7 +828,9 @@ class RTISolver(_Backend):
         rT, JT = terminal(S[:, N - 1], refs[:, N])
         H_blocks, g_blocks, A_rows = [], [], []
         eye = ca.MX.eye(ns)
-        reg = 1e-9  # keeps H positive definite along the unweighted velocities
+        # 1e-9 keeps H positive definite along the unweighted velocities; the step damping
+        # adds its proximal term (module doc, "Step damping")
+        reg = 1e-9 + cfg.step_damping
         for k in range(N):
             Jv = Jvk[:, k * nu : (k + 1) * nu]
             rr = rk[:, k]
@@ -894,10 +911,13 @@ class RTISolver(_Backend):
         bounded = np.concatenate([[0, 1], NX + np.arange(nu)])
         upper = np.concatenate([[ocp.pos_max] * 2, np.ones(nu)])
         tolerances = tuple(float(hp[k]) for k in (*self.KERNEL_TOLERANCES, "mu0"))
-        return RTIKernel(
+        kernel = RTIKernel(
             library, dims, np.broadcast_to(ocp.du_max, (nu,)), bounded, -upper, upper,
             tolerances, int(hp["iter_max"]),
         )  # fmt: skip
+        if cfg.step_damping:
+            kernel.set_damping(cfg.step_damping)
+        return kernel
 
     def _split(self, z: Any) -> tuple[Any, Any]:
         """(states s₁ … s_N as columns, controls v₀ … v_{N−1} as columns) of a QP vector."""

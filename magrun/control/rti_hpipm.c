@@ -19,6 +19,10 @@
  * Gauss-Newton cost of the stacked residuals, 1/2 |r + Js ds + Jv dv|^2 per stage:
  *
  *   Q = Js'Js, S = Jv'Js (nu x nx), R = Jv'Jv, q = Js'r, r = Jv'r, (+ reg on the diagonals)
+ *
+ * reg is RTI_REG plus the step damping mu (rti_set_damping; 0 unless set): mu/2 |step|^2 in
+ * the QP, a Levenberg-Marquardt proximal term on every state and control step. It leaves
+ * the iteration's fixed points where they are and shortens each step.
  *   ds_{k+1} = A_k ds_k + B_k dv_k + (f(s_k, v_k) - s_{k+1})
  *
  * and the soft constraints g(s, v) >= 0 (the weighted gaps of the heading-stable field and
@@ -81,6 +85,7 @@ typedef struct {
     struct d_ocp_qp_ipm_ws ws[2];
     void *memory[6];
     int retries; /* QPs the fast mode failed and the robust one solved */
+    double reg;  /* RTI_REG + the step damping */
     /* CasADi work */
     const double **arg_ptr;
     double **res_ptr;
@@ -106,8 +111,8 @@ static void tmul(int m, int n, int p, const double *X, const double *Y, double *
         }
 }
 
-static void add_reg(int n, double *H) {
-    for (int i = 0; i < n; ++i) H[i + i * n] += RTI_REG;
+static void add_reg(int n, double *H, double reg) {
+    for (int i = 0; i < n; ++i) H[i + i * n] += reg;
 }
 
 static int all_finite(int n, const double *x) {
@@ -154,6 +159,7 @@ void *rti_create(const double *du_max, const int *idxbx, const double *s_lb, con
                  const double *tol, int iter_max) {
     rti_mem *m = calloc(1, sizeof(rti_mem));
     if (!m) return NULL;
+    m->reg = RTI_REG;
     memcpy(m->du_max, du_max, sizeof(m->du_max));
     memcpy(m->idxbx, idxbx, sizeof(m->idxbx));
     memcpy(m->s_lb, s_lb, sizeof(m->s_lb));
@@ -288,7 +294,7 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
             !all_finite(RTI_NG, m->g))
             return -1;
         tmul(RTI_NR, RTI_NU, RTI_NU, m->Jv, m->Jv, m->R);
-        add_reg(RTI_NU, m->R);
+        add_reg(RTI_NU, m->R, m->reg);
         d_ocp_qp_set_R(k, m->R, &m->qp);
         d_ocp_qp_set_B(k, m->B, &m->qp);
         if (k == 0) {
@@ -307,7 +313,7 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
         } else {
             tmul(RTI_NR, RTI_NU, 1, m->Jv, m->r, m->rv);
             tmul(RTI_NR, RTI_NS, RTI_NS, m->Js, m->Js, m->Q);
-            add_reg(RTI_NS, m->Q);
+            add_reg(RTI_NS, m->Q, m->reg);
             tmul(RTI_NR, RTI_NU, RTI_NS, m->Jv, m->Js, m->Sc);
             tmul(RTI_NR, RTI_NS, 1, m->Js, m->r, m->q);
             d_ocp_qp_set_A(k, m->A, &m->qp);
@@ -337,7 +343,7 @@ int rti_prepare(void *handle, const double *par, const double *s_lin) {
     rti_terminal(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
     if (!all_finite(RTI_NRT, m->rN) || !all_finite(RTI_NGT, m->gN)) return -1;
     tmul(RTI_NRT, RTI_NS, RTI_NS, m->JN, m->JN, m->Q);
-    add_reg(RTI_NS, m->Q);
+    add_reg(RTI_NS, m->Q, m->reg);
     tmul(RTI_NRT, RTI_NS, 1, m->JN, m->rN, m->q);
     d_ocp_qp_set_Q(RTI_N, m->Q, &m->qp);
     d_ocp_qp_set_q(RTI_N, m->q, &m->qp);
@@ -447,6 +453,10 @@ void rti_predict(void *handle, const double *X, const double *u, double *X_next)
     m->res_ptr[0] = X_next;
     rti_step(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
 }
+
+/* the step damping mu >= 0 (the Levenberg-Marquardt term above); takes effect at the next
+ * preparation */
+void rti_set_damping(void *handle, double mu) { ((rti_mem *)handle)->reg = RTI_REG + mu; }
 
 int rti_retries(void *handle) { return ((rti_mem *)handle)->retries; }
 

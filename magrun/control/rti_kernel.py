@@ -168,6 +168,7 @@ class RTIKernel:
         lib.rti_retries.argtypes = [ctypes.c_void_p]
         lib.rti_set_fast_iter_max.argtypes = [ctypes.c_void_p, ctypes.c_int]
         lib.rti_predict.argtypes = [ctypes.c_void_p, _double_p, _double_p, _double_p]
+        lib.rti_set_damping.argtypes = [ctypes.c_void_p, ctypes.c_double]
         self._lib = lib
         arrays: list[np.ndarray] = [
             np.ascontiguousarray(np.broadcast_to(du_max, (self.nu,)), dtype=np.float64),
@@ -229,6 +230,11 @@ class RTIKernel:
         out = np.empty(X.size)
         self._lib.rti_predict(self._handle, _ptr(X), _ptr(u), _ptr(out))
         return out
+
+    def set_damping(self, mu: float) -> None:
+        """The step damping μ ≥ 0: μ/2 |step|² in every QP from the next preparation on
+        (:class:`magrun.control.nmpc.NMPCConfig` ``step_damping``)."""
+        self._lib.rti_set_damping(self._handle, float(mu))
 
     def limit_fast_iterations(self, iter_max: int) -> None:
         """HPIPM's fast mode stops after ``iter_max`` iterations (tests of the robust retry)."""

@@ -315,3 +315,65 @@ def trajectory_capability(
     return TrajectoryCapability(
         t[cut], poses[cut], factor[cut], speed[cut], offset[cut], rates[cut, 2]
     )
+
+
+#: the speed factor a planned heading keeps in hand where the reference's own heading cannot
+#: be held somewhere along it: on the three-coil system of docs/systems.md (S at 1 mm/s,
+#: 6 seeds) 1.5 and 2 each lost the robot in a trial, 2.5 in none
+HELD_SPARE = 2.5
+HELD_OFFSETS = np.radians(np.arange(5.0, 180.1, 5.0))
+#: poses checked along the reference, and the offsets' moving average (in poses, odd): a
+#: heading planned to swing as fast as the check's pose spacing would be a new task
+HELD_SAMPLES = 400
+HELD_SMOOTHING = 9
+
+
+def held_reference(
+    model: PlanarFieldModel,
+    robot: RobotParams,
+    max_current: float | ArrayLike,
+    reference: Trajectory,
+) -> tuple[Trajectory, FloatArray]:
+    """The reference with the headings the coils can hold: ``(trajectory, offsets)``.
+
+    ``reference`` itself, and zero offsets, where :func:`pose_capability` reaches its
+    velocity and turn rate at its own heading (to :data:`REACHED`) at each of
+    :data:`HELD_SAMPLES` poses. Else, at each pose, its own heading where the coils give
+    that velocity :data:`HELD_SPARE` times over, or the nearest heading that they do (5°
+    steps, the side of the previous pose's offset first), or the previous pose's offset
+    where none does; the offsets are smoothed (a moving average over :data:`HELD_SMOOTHING`
+    poses) and added to the reference's headings. ``offsets`` (rad) are per checked pose."""
+    n = model.coils.n_channels
+    limits = _limits(max_current, n)
+    t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
+    poses = reference.pose(t)
+    rates = np.gradient(poses, t, axis=0)
+    sites = _sites(model, robot, limits, poses[:, :2])
+
+    def factor(k: int, offset: float) -> float:
+        cap = pose_capability(sites[k], float(poses[k, 2]) + offset, rates[k, :2], rates[k, 2])
+        return cap.speed_factor
+
+    def holds(k: int, offset: float) -> bool:
+        return factor(k, offset) >= HELD_SPARE
+
+    own_factor = np.array([factor(k, 0.0) for k in range(HELD_SAMPLES)])
+    offsets = np.zeros(HELD_SAMPLES)
+    if np.all(own_factor >= REACHED):
+        return reference, offsets
+    own = own_factor >= HELD_SPARE
+    previous = 0.0
+    for k in range(HELD_SAMPLES):
+        if not own[k]:
+            side = -1.0 if previous < 0 else 1.0
+            tries = (d for a in HELD_OFFSETS for d in (side * a, -side * a))
+            previous = next((d for d in tries if holds(k, float(d))), previous)
+        else:
+            previous = 0.0
+        offsets[k] = previous
+    half = HELD_SMOOTHING // 2
+    padded = np.pad(offsets, half, mode="edge")
+    smooth = np.convolve(padded, np.ones(HELD_SMOOTHING) / HELD_SMOOTHING, mode="valid")
+    poses_out = reference.poses.copy()
+    poses_out[:, 2] += np.interp(reference.t, t, smooth)
+    return Trajectory(reference.t.copy(), poses_out), offsets
