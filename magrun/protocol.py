@@ -280,6 +280,16 @@ class ControllerSettings(_Strict):
             ),
         )
     )
+    current_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
+        Field(
+            "auto",
+            description=(
+                "A factor on the NMPC's current and current-change weights; 'auto': 1 on a "
+                "system about as strong for the task as the paper's rig, (f/8.2)^2 where the "
+                "coils give the reference's velocity f > 8.2 times over (median)."
+            ),
+        )
+    )
     latency_ms: Annotated[float, Field(ge=0, le=MAX_LATENCY_MS)] | Literal["measured", "none"] = (
         Field(
             DEFAULT_LATENCY_MS,

@@ -396,7 +396,11 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
 #: currents' own weight, R = 1 per (I / I_max)²
 HELD_DAMPING = 1.0
 #: planned_reference's results in this process, keyed as check_reach's
-_PLANNED: dict[tuple[Any, ...], Trajectory] = {}
+_PLANNED: dict[tuple[Any, ...], Any] = {}
+#: how many times over the paper rig's coils give its protocols' references' velocities
+#: (median over each reference; 5.9 to 8.1 for the spine, the channel and the S), rounded up:
+#: the NMPC's current weights were set there (module doc of magrun.control.nmpc, "Weights")
+PAPER_SPEED_FACTOR = 8.2
 
 
 def _reach_key(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> tuple[Any, ...]:
@@ -406,26 +410,49 @@ def _reach_key(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> 
     )  # fmt: skip
 
 
-def planned_reference(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> Trajectory:
-    """``reference`` with the headings the coils can hold (the nominal robot, the system's
-    lookup-table model, its limits; :func:`magrun.field.capability.held_reference`):
-    ``reference`` itself where they hold its own heading throughout."""
+def nmpc_tuning(
+    nmpc: NMPCConfig, settings: ControllerSettings, held: bool, factor: float
+) -> NMPCConfig:
+    """The NMPC's step damping and current weights for a system and task (module doc of
+    :mod:`magrun.control.nmpc`, "Step damping" and "Weights"): ``held``, whether the planner
+    follows held headings instead of the reference's; ``factor``, how many times over the
+    coils give the reference's velocity (median)."""
+    damping = settings.step_damping
+    if damping == "auto":
+        damping = HELD_DAMPING if held else 0.0
+    weight: float
+    if settings.current_weight != "auto":
+        weight = settings.current_weight
+    elif math.isfinite(factor):
+        weight = max(1.0, (factor / PAPER_SPEED_FACTOR) ** 2)
+    else:
+        weight = 1.0
+    return replace(
+        nmpc, step_damping=float(damping), r_current=nmpc.r_current * weight,
+        s_current_change=nmpc.s_current_change * weight,
+    )  # fmt: skip
+
+
+def planned_reference(
+    coils: CoilSystem, reference: Trajectory, robot: RobotParams
+) -> tuple[Trajectory, float]:
+    """``(trajectory, factor)``: ``reference`` with the headings the coils can hold (the
+    nominal robot, the system's lookup-table model, its limits;
+    :func:`magrun.field.capability.held_reference`), ``reference`` itself where they hold
+    its own heading throughout; and how many times over they give its velocity (median)."""
     from magrun.field.capability import held_reference
 
     key = _reach_key(coils, reference, robot)
-    planned = _PLANNED.get(key)
-    if planned is None:
+    held = _PLANNED.get(key)
+    if held is None:
         model = system_models(coils.folder)[1]
-        planned, _ = held_reference(model, robot, coils.max_current, reference)
+        held = held_reference(model, robot, coils.max_current, reference)
         if len(_PLANNED) >= 32:
             _PLANNED.clear()
-        _PLANNED[key] = planned
+        _PLANNED[key] = held
     # the cached trajectory stands for this reference: the same object where unchanged
-    return (
-        reference
-        if planned.poses is reference.poses or np.array_equal(planned.poses, reference.poses)
-        else planned
-    )
+    same = held.trajectory is reference or not held.offsets.any()
+    return (reference if same else held.trajectory), held.median_factor
 
 
 #: check_reach's verdicts in this process, by system, limits, robot and trajectory (a test
@@ -507,12 +534,15 @@ def build_controller(
     config = control_config(protocol.controller, robot, trial.condition)
     # the NMPC plans the heading with the currents: it follows headings the coils can hold
     # (the two-layer baselines allocate a force and a field of their own choosing)
-    nmpc = trial.method in NMPC_METHODS
-    planned = planned_reference(coils, scene.reference, robot) if nmpc else scene.reference
-    damping = protocol.controller.step_damping
-    if damping == "auto":  # module doc of magrun.control.nmpc, "Step damping"
-        damping = HELD_DAMPING if planned is not scene.reference else 0.0
-    config = replace(config, nmpc=replace(config.nmpc, step_damping=float(damping)))
+    planned = scene.reference
+    if trial.method in NMPC_METHODS:
+        planned, factor = planned_reference(coils, scene.reference, robot)
+        config = replace(
+            config,
+            nmpc=nmpc_tuning(
+                config.nmpc, protocol.controller, planned is not scene.reference, factor
+            ),
+        )
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

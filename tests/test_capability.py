@@ -34,7 +34,7 @@ from magrun.field.mpem import import_mpem
 from magrun.protocol import load_protocol
 from magrun.robot import drag_matrix, load_robot, magnetic_wrench
 from magrun.scene import s_trajectory
-from magrun.trial import RunError, check_system, system_models
+from magrun.trial import PAPER_SPEED_FACTOR, RunError, check_system, system_models
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = load_robot("micro_magnet")
@@ -193,7 +193,8 @@ def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
     folder = import_mpem(tmp_path / "tri.yaml", tmp_path / "tri", 0.0, (0.0, 0.0), 10e-3)
     model = system_models(folder)[1]
     reference = s_trajectory(size=12e-3, speed=1e-3)
-    planned, offsets = held_reference(model, ROBOT, 10.0, reference)
+    held = held_reference(model, ROBOT, 10.0, reference)
+    planned, offsets = held.trajectory, held.offsets
     assert planned is not reference
     assert_allclose(planned.t, reference.t)
     assert_allclose(planned.poses[:, :2], reference.poses[:, :2])
@@ -211,6 +212,7 @@ def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
     for k in turned[:: max(1, len(turned) // 25)]:  # 25 of them: an LP each
         assert not factor(k, 0.0) >= HELD_SPARE
         assert factor(k, offsets[k]) >= HELD_SPARE
+        assert held.factor[k] == pytest.approx(factor(k, offsets[k]), rel=1e-9)
     for k in np.flatnonzero(offsets == 0)[::40]:
         assert factor(k, 0.0) >= HELD_SPARE
     # the planned headings are the reference's plus the smoothed offsets: within their range
@@ -228,6 +230,35 @@ def test_a_reference_the_coils_hold_is_planned_as_it_is() -> None:
 
     reference = build_scene(protocol, coils).reference
     model = system_models(coils.folder)[1]
-    planned, offsets = held_reference(model, load_robot("magnet"), coils.max_current, reference)
-    assert planned is reference
-    assert not offsets.any()
+    held = held_reference(model, load_robot("magnet"), coils.max_current, reference)
+    assert held.trajectory is reference
+    assert not held.offsets.any()
+    # the coils give the S's velocity about 8 times over: the NMPC's weights as set there
+    assert 5.0 < held.median_factor <= PAPER_SPEED_FACTOR
+
+
+def test_the_nmpc_weighs_currents_by_what_the_task_needs() -> None:
+    """The weights were set on the paper rig, whose coils give its references' velocities
+    about PAPER_SPEED_FACTOR times over: where a system gives the reference's velocity f times
+    over, the same work takes currents f / PAPER_SPEED_FACTOR times smaller as fractions of
+    the limit, so R and S scale by that squared (never below the paper rig's); the step damping
+    is 1 where the planner follows held headings. A protocol's numbers override both."""
+    from magrun.control.nmpc import NMPCConfig
+    from magrun.protocol import ControllerSettings
+    from magrun.trial import nmpc_tuning
+
+    base = NMPCConfig()
+    auto = ControllerSettings()
+    strong = nmpc_tuning(base, auto, True, 2 * PAPER_SPEED_FACTOR)
+    assert strong.r_current == pytest.approx(4 * base.r_current)
+    assert strong.s_current_change == pytest.approx(4 * base.s_current_change)
+    assert strong.step_damping == 1.0
+    paper = nmpc_tuning(base, auto, False, 0.7 * PAPER_SPEED_FACTOR)
+    assert (paper.r_current, paper.s_current_change, paper.step_damping) == (
+        base.r_current, base.s_current_change, 0.0,
+    )  # fmt: skip
+    assert nmpc_tuning(base, auto, False, math.nan).r_current == base.r_current
+    given = ControllerSettings(step_damping=0.25, current_weight=3.0)
+    tuned = nmpc_tuning(base, given, True, 10 * PAPER_SPEED_FACTOR)
+    assert tuned.step_damping == 0.25
+    assert tuned.r_current == pytest.approx(3 * base.r_current)

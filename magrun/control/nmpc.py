@@ -92,7 +92,16 @@ currents as fractions of the limit, u = I / I_max. The weights are stated in tho
 Qp and P per mm², qθ and qθ,N per rad², R and S per u².
 
 Default weights follow the paper's tuning note, ‖R‖ = 2‖S‖ and ‖Qp‖ = 10‖R‖, in these units
-(R = I₈, S = 0.5 I₈, Qp = P = 10 I₂). The paper does not state its units, and the ratio only
+(R = I₈, S = 0.5 I₈, Qp = P = 10 I₂). They were set on the paper's rig, whose coils give its
+references' velocities 5.9–8.1 times over (median over a reference; :func:`magrun.field.
+capability.held_reference`). On a system f times stronger for its task the same force takes
+currents f/8.2 times the fraction of the limit, and R and S per u² weigh them that much less:
+a trial's R and S are scaled by max(1, (f / 8.2)²) (``controller.current_weight: auto``;
+:func:`magrun.trial.nmpc_tuning`), so the paper rig keeps its weights and a system whose
+coils could fling the robot gets currents weighed by what the task needs. On OctoMag
+(f ≈ 47, weights × 33) the proposed method's 25.5 Hz, σ = 2 mm trials went from 0.76 mm, 7°
+to 0.66 mm, 2°; on three coils (f ≈ 58 for a slow S) it lost the robot in 1 of 10 seeds
+without the scaling, in none with it. The paper does not state its units, and the ratio only
 means something with them: with currents in amperes instead (the same numbers per A², a
 current penalty 900 times heavier) the robot lags the S-trajectory by 1.7–1.9 mm RMS on the
 simulated rig; with normalised currents it tracks to a few hundredths of a millimetre.

@@ -328,13 +328,32 @@ HELD_SAMPLES = 400
 HELD_SMOOTHING = 9
 
 
+@dataclass(frozen=True)
+class HeldReference:
+    """:func:`held_reference`'s result."""
+
+    #: the reference with held headings (the reference object itself where its own holds)
+    trajectory: Trajectory
+    #: rad, per checked pose: the heading offset chosen there (before smoothing)
+    offsets: FloatArray
+    #: per checked pose, the speed factor at that heading (NaN: no heading holds there)
+    factor: FloatArray
+
+    @property
+    def median_factor(self) -> float:
+        """How many times over the coils give the reference's velocity, median over its
+        poses (NaN-free ones): how strong the system is for this task."""
+        finite = self.factor[np.isfinite(self.factor)]
+        return float(np.median(finite)) if finite.size else math.nan
+
+
 def held_reference(
     model: PlanarFieldModel,
     robot: RobotParams,
     max_current: float | ArrayLike,
     reference: Trajectory,
-) -> tuple[Trajectory, FloatArray]:
-    """The reference with the headings the coils can hold: ``(trajectory, offsets)``.
+) -> HeldReference:
+    """The reference with the headings the coils can hold.
 
     ``reference`` itself, and zero offsets, where :func:`pose_capability` reaches its
     velocity and turn rate at its own heading (to :data:`REACHED`) at each of
@@ -342,7 +361,7 @@ def held_reference(
     that velocity :data:`HELD_SPARE` times over, or the nearest heading that they do (5°
     steps, the side of the previous pose's offset first), or the previous pose's offset
     where none does; the offsets are smoothed (a moving average over :data:`HELD_SMOOTHING`
-    poses) and added to the reference's headings. ``offsets`` (rad) are per checked pose."""
+    poses) and added to the reference's headings."""
     n = model.coils.n_channels
     limits = _limits(max_current, n)
     t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
@@ -354,26 +373,26 @@ def held_reference(
         cap = pose_capability(sites[k], float(poses[k, 2]) + offset, rates[k, :2], rates[k, 2])
         return cap.speed_factor
 
-    def holds(k: int, offset: float) -> bool:
-        return factor(k, offset) >= HELD_SPARE
-
-    own_factor = np.array([factor(k, 0.0) for k in range(HELD_SAMPLES)])
+    factors = np.array([factor(k, 0.0) for k in range(HELD_SAMPLES)])
     offsets = np.zeros(HELD_SAMPLES)
-    if np.all(own_factor >= REACHED):
-        return reference, offsets
-    own = own_factor >= HELD_SPARE
+    if np.all(factors >= REACHED):
+        return HeldReference(reference, offsets, factors)
     previous = 0.0
     for k in range(HELD_SAMPLES):
-        if not own[k]:
-            side = -1.0 if previous < 0 else 1.0
-            tries = (d for a in HELD_OFFSETS for d in (side * a, -side * a))
-            previous = next((d for d in tries if holds(k, float(d))), previous)
-        else:
+        if factors[k] >= HELD_SPARE:
             previous = 0.0
+        else:
+            side = -1.0 if previous < 0 else 1.0
+            tries = ((d, factor(k, d)) for a in HELD_OFFSETS for d in (side * a, -side * a))
+            found = next(((d, f) for d, f in tries if f >= HELD_SPARE), None)
+            if found is None:
+                factors[k] = factor(k, previous)
+            else:
+                previous, factors[k] = float(found[0]), found[1]
         offsets[k] = previous
     half = HELD_SMOOTHING // 2
     padded = np.pad(offsets, half, mode="edge")
     smooth = np.convolve(padded, np.ones(HELD_SMOOTHING) / HELD_SMOOTHING, mode="valid")
     poses_out = reference.poses.copy()
     poses_out[:, 2] += np.interp(reference.t, t, smooth)
-    return Trajectory(reference.t.copy(), poses_out), offsets
+    return HeldReference(Trajectory(reference.t.copy(), poses_out), offsets, factors)
