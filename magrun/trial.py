@@ -45,6 +45,7 @@ from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
 from magrun.field.coils import CoilFileError, CoilSystem
 from magrun.field.lut import LookupTableFieldModel
+from magrun.field.model import PlanarFieldModel
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.freespace import FreeSpace
 from magrun.loop import PoseTracker, TrialLog, run_trial
@@ -392,29 +393,40 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     return coils
 
 
-#: the NMPC's step damping where the planner's headings leave the reference's (``auto``): the
-#: currents' own weight, R = 1 per (I / I_max)²
+#: the NMPC's step damping where the planner's headings leave the reference's (``auto``), per
+#: (I / I_max)²: the paper rig's current weight R
 HELD_DAMPING = 1.0
-#: planned_reference's results in this process, keyed as check_reach's
+#: planned_reference's results in this process (_remembered)
 _PLANNED: dict[tuple[Any, ...], Any] = {}
 #: how many times over the paper rig's coils give its protocols' references' velocities
 #: (median over each reference; 5.9 to 8.1 for the spine, the channel and the S), rounded up:
-#: the NMPC's current weights were set there (module doc of magrun.control.nmpc, "Weights")
+#: the NMPC's current weights were set there (the weights in magrun.control.nmpc's module doc)
 PAPER_SPEED_FACTOR = 8.2
 
 
-def _reach_key(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> tuple[Any, ...]:
-    return (
+def _remembered(
+    cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory,
+    robot: RobotParams, compute: Callable[[PlanarFieldModel], Any],
+) -> Any:  # fmt: skip
+    """``compute(the system's lookup-table model)``, remembered in ``cache`` (at most 32) by
+    system, limits, robot and trajectory: a test session or a campaign runs the same
+    protocol many times, and each answer costs hundreds of linear programs."""
+    key = (
         coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot),
         reference.t.tobytes(), reference.poses.tobytes(),
     )  # fmt: skip
+    if key not in cache:
+        if len(cache) >= 32:
+            cache.clear()
+        cache[key] = compute(system_models(coils.folder)[1])
+    return cache[key]
 
 
 def nmpc_tuning(
     nmpc: NMPCConfig, settings: ControllerSettings, held: bool, factor: float
 ) -> NMPCConfig:
     """The NMPC's step damping and current weights for a system and task (module doc of
-    :mod:`magrun.control.nmpc`, "Step damping" and "Weights"): ``held``, whether the planner
+    :mod:`magrun.control.nmpc`: step damping, and the weights): ``held``, whether the planner
     follows held headings instead of the reference's; ``factor``, how many times over the
     coils give the reference's velocity (median)."""
     damping = settings.step_damping
@@ -442,21 +454,16 @@ def planned_reference(
     its own heading throughout; and how many times over they give its velocity (median)."""
     from magrun.field.capability import held_reference
 
-    key = _reach_key(coils, reference, robot)
-    held = _PLANNED.get(key)
-    if held is None:
-        model = system_models(coils.folder)[1]
-        held = held_reference(model, robot, coils.max_current, reference)
-        if len(_PLANNED) >= 32:
-            _PLANNED.clear()
-        _PLANNED[key] = held
+    held = _remembered(
+        _PLANNED, coils, reference, robot,
+        lambda model: held_reference(model, robot, coils.max_current, reference),
+    )  # fmt: skip
     # the cached trajectory stands for this reference: the same object where unchanged
     same = held.trajectory is reference or not held.offsets.any()
     return (reference if same else held.trajectory), held.median_factor
 
 
-#: check_reach's verdicts in this process, by system, limits, robot and trajectory (a test
-#: session or a campaign runs the same protocol many times)
+#: check_reach's verdicts in this process (_remembered)
 _REACH: dict[tuple[Any, ...], Any] = {}
 
 
@@ -465,14 +472,10 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
     nominal robot, the system's lookup-table model, its current limits)."""
     from magrun.field.capability import trajectory_capability
 
-    key = _reach_key(coils, reference, robot)
-    reach = _REACH.get(key)
-    if reach is None:
-        model = system_models(coils.folder)[1]
-        reach = trajectory_capability(model, robot, coils.max_current, reference, 200, True)
-        if len(_REACH) >= 32:
-            _REACH.clear()
-        _REACH[key] = reach
+    reach = _remembered(
+        _REACH, coils, reference, robot,
+        lambda model: trajectory_capability(model, robot, coils.max_current, reference, 200, True),
+    )  # fmt: skip
     if reach.feasible:
         return
     k = len(reach.t) - 1  # the first pose out of reach
