@@ -196,6 +196,12 @@ def execute_trial(
             log, controller.dt, controller.max_current, parts.free_space,
             predict=controller.planner.predict, frame_ticks=parts.frame_ticks,
         )  # fmt: skip
+        if parts.planned is not scene.reference:  # headings the coils can hold (trial.py)
+            turn = np.degrees(np.abs(parts.planned.poses[:, 2] - scene.reference.poses[:, 2]))
+            warnings.append(
+                f"the coils cannot hold the reference's heading along {np.mean(turn > 1):.0%} "
+                f"of it: the planner followed headings up to {turn.max():.0f}° off it"
+            )
         reason = log.stop_reason
         if log.interrupted:
             reason = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"
