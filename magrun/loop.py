@@ -129,7 +129,6 @@ def run_trial(
     controller: Controller,
     rig: Rig,
     reference: Trajectory,
-    planned: Trajectory | None = None,
     feedback: Feedback = perfect_feedback,
     horizon: int = 20,
     duration: float | None = None,
@@ -141,6 +140,7 @@ def run_trial(
     clock: Callable[[], float] = time.perf_counter,
     stop: Callable[[], bool] | None = None,
     safety: SafetyLayer | None = None,
+    planned: Trajectory | None = None,
 ) -> TrialLog:
     """Run ``reference`` (plus 1 s of hold) closed loop; the robot starts at its first pose.
 
