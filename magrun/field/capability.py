@@ -147,18 +147,23 @@ def pose_capability(
 
 
 def reachable(
-    site: Site, theta: float, velocity: ArrayLike, turn_rate: float = 0.0
+    site: Site,
+    theta: float,
+    velocity: ArrayLike,
+    turn_rate: float = 0.0,
+    offsets: ArrayLike = HEADING_OFFSETS,
+    enough: float = REACHED,
 ) -> tuple[float, float]:
-    """:func:`pose_capability` at heading ``theta`` and, where that falls short of the asked
-    velocity, at the headings :data:`HEADING_OFFSETS` away, until one reaches it: the factor
-    (the first ≥ :data:`REACHED` found, else the best; NaN where no heading can be held)
-    and its offset."""
+    """:func:`pose_capability` at the headings ``offsets`` away from ``theta`` (rad, in
+    order; default: its own first, then :data:`HEADING_OFFSETS`), until one gives the asked
+    velocity ``enough`` times over: the factor (the first such one found, else the best; NaN
+    where no heading can be held) and its offset."""
     best, at = math.nan, 0.0
-    for delta in HEADING_OFFSETS:
+    for delta in np.asarray(offsets, dtype=np.float64):
         cap = pose_capability(site, theta + delta, velocity, turn_rate)
         if cap.speed_factor > best or math.isnan(best):
             best, at = cap.speed_factor, float(delta)
-        if best >= REACHED:
+        if best >= enough:
             break
     return best, at
 
@@ -321,6 +326,7 @@ def trajectory_capability(
 #: be held somewhere along it: on the three-coil system of docs/systems.md (S at 1 mm/s,
 #: 6 seeds) 1.5 and 2 each lost the robot in a trial, 2.5 in none
 HELD_SPARE = 2.5
+#: heading offsets tried, rad: 5° apart up to a half turn either way
 HELD_OFFSETS = np.radians(np.arange(5.0, 180.1, 5.0))
 #: poses checked along the reference, and the offsets' moving average (in poses, odd): a
 #: heading planned to swing as fast as the check's pose spacing would be a new task
@@ -383,12 +389,14 @@ def held_reference(
             previous = 0.0
         else:
             side = -1.0 if previous < 0 else 1.0
-            tries = ((d, factor(k, d)) for a in HELD_OFFSETS for d in (side * a, -side * a))
-            found = next(((d, f) for d, f in tries if f >= HELD_SPARE), None)
-            if found is None:
-                factors[k] = factor(k, previous)
+            tries = np.ravel(np.column_stack([side * HELD_OFFSETS, -side * HELD_OFFSETS]))
+            best, at = reachable(
+                sites[k], float(poses[k, 2]), rates[k, :2], rates[k, 2], tries, HELD_SPARE
+            )  # fmt: skip
+            if best >= HELD_SPARE:
+                previous, factors[k] = at, best
             else:
-                previous, factors[k] = float(found[0]), found[1]
+                factors[k] = factor(k, previous)
         offsets[k] = previous
     half = HELD_SMOOTHING // 2
     padded = np.pad(offsets, half, mode="edge")
