@@ -74,6 +74,7 @@ class _Strict(BaseModel):
 MAX_RATE_HZ = 1000.0  # control and feedback rates, Hz (coil amplifiers: a few kHz at most)
 MIN_CONTROL_RATE_HZ = 1.0
 MAX_LATENCY_MS = 10_000.0
+MAX_INTEGRAL_TIME_S = 3600.0  # an integral action slower than an hour is none
 MAX_NOISE_MM = 1000.0  # a protocol's workspace is at most a metre across
 MAX_NOISE_DEG = 360.0
 Rate = Annotated[float, Field(gt=0, le=MAX_RATE_HZ, allow_inf_nan=False)]
@@ -289,6 +290,18 @@ class ControllerSettings(_Strict):
                 "coils give the reference's velocity f > 8.2 times over (median)."
             ),
         )
+    )
+    integral_time_s: (
+        Annotated[float, Field(ge=0, le=MAX_INTEGRAL_TIME_S, allow_inf_nan=False)] | Literal["auto"]
+    ) = Field(
+        "auto",
+        description=(
+            "Integral action of the methods with a Kalman filter (proposed, baseline5): the "
+            "reference's positions move by the integrated position error, with this time "
+            "constant, s, where the estimate is certain, slower where it is not; 0: off. "
+            "'auto': 0.15 s where the current weights are raised above the paper rig's and "
+            "the coils hold the reference's own headings, else off (docs: Control)."
+        ),
     )
     latency_ms: Annotated[float, Field(ge=0, le=MAX_LATENCY_MS)] | Literal["measured", "none"] = (
         Field(

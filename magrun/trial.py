@@ -402,6 +402,9 @@ _PLANNED: dict[tuple[Any, ...], Any] = {}
 #: (median over each reference; 5.9 to 8.1 for the spine, the channel and the S), rounded up:
 #: the NMPC's current weights were set there (the weights in magrun.control.nmpc's module doc)
 PAPER_SPEED_FACTOR = 8.2
+#: s: the integral action's time constant where ``auto`` turns it on (:func:`integral_time`);
+#: 0.3 s and 1 s left more of the offset on OctoMag and MiniMag with exact feedback
+INTEGRAL_TIME = 0.15
 
 
 def _remembered(
@@ -432,17 +435,30 @@ def nmpc_tuning(
     damping = settings.step_damping
     if damping == "auto":
         damping = HELD_DAMPING if held else 0.0
-    weight: float
-    if settings.current_weight != "auto":
-        weight = settings.current_weight
-    elif math.isfinite(factor):
-        weight = max(1.0, (factor / PAPER_SPEED_FACTOR) ** 2)
-    else:
-        weight = 1.0
+    weight = current_weight(settings, factor)
     return replace(
         nmpc, step_damping=float(damping), r_current=nmpc.r_current * weight,
         s_current_change=nmpc.s_current_change * weight,
     )  # fmt: skip
+
+
+def current_weight(settings: ControllerSettings, factor: float) -> float:
+    """The factor on the NMPC's current weights (:func:`nmpc_tuning`): the protocol's, or
+    ``auto``'s max(1, (factor / PAPER_SPEED_FACTOR)²)."""
+    if settings.current_weight != "auto":
+        return settings.current_weight
+    return max(1.0, (factor / PAPER_SPEED_FACTOR) ** 2) if math.isfinite(factor) else 1.0
+
+
+def integral_time(settings: ControllerSettings, held: bool, factor: float) -> float:
+    """The integral action's time constant, s (:class:`magrun.control.base.Controller`):
+    the protocol's, or ``auto``'s: :data:`INTEGRAL_TIME` where the current weights are raised
+    above the paper rig's (they leave the robot behind by what the model does not know of
+    it) and the planner follows the reference's own headings (where it follows held ones,
+    the distance to the reference is the price of the heading, not an offset), else 0."""
+    if settings.integral_time_s != "auto":
+        return settings.integral_time_s
+    return INTEGRAL_TIME if current_weight(settings, factor) > 1.0 and not held else 0.0
 
 
 def planned_reference(
@@ -540,12 +556,11 @@ def build_controller(
     planned = scene.reference
     if trial.method in NMPC_METHODS:
         planned, factor = planned_reference(coils, scene.reference, robot)
+        held = planned is not scene.reference
         config = replace(
-            config,
-            nmpc=nmpc_tuning(
-                config.nmpc, protocol.controller, planned is not scene.reference, factor
-            ),
-        )
+            config, nmpc=nmpc_tuning(config.nmpc, protocol.controller, held, factor),
+            integral_time=integral_time(protocol.controller, held, factor),
+        )  # fmt: skip
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

@@ -267,6 +267,24 @@ def test_the_nmpc_weighs_currents_by_what_the_task_needs() -> None:
     assert tuned.r_current == pytest.approx(3 * base.r_current)
 
 
+def test_integral_action_where_the_weights_are_raised_and_the_headings_are_the_references() -> None:
+    """auto: INTEGRAL_TIME where the current weights are above the paper rig's and the planner
+    follows the reference's own headings; none on the paper rig (its trials unchanged), none
+    where the headings are held; a protocol's number (0 included) wins."""
+    from magrun.protocol import ControllerSettings
+    from magrun.trial import INTEGRAL_TIME, integral_time
+
+    auto = ControllerSettings()
+    assert integral_time(auto, False, 2 * PAPER_SPEED_FACTOR) == INTEGRAL_TIME
+    assert integral_time(auto, True, 2 * PAPER_SPEED_FACTOR) == 0.0
+    assert integral_time(auto, False, 0.9 * PAPER_SPEED_FACTOR) == 0.0
+    assert integral_time(auto, False, math.nan) == 0.0
+    # a weight the protocol raises turns it on as the speed factor would
+    assert integral_time(ControllerSettings(current_weight=2.0), False, 1.0) == INTEGRAL_TIME
+    assert integral_time(ControllerSettings(integral_time_s=0), False, 50.0) == 0.0
+    assert integral_time(ControllerSettings(integral_time_s=2.5), True, 1.0) == 2.5
+
+
 #: each coil's field over the model's in the sweep below (a plant's per-coil gain error)
 GAINS = np.array([0.97, 1.04, 0.99])
 

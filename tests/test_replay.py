@@ -164,6 +164,7 @@ def test_replay_on_the_command_line(recorded: dict[str, Path], tmp_path: Path) -
     [
         (["--set", "controller.kalmn.x=1"], "did you mean 'kalman'"),
         (["--set", "controller.kalman.measurement_sigma_mm=-1"], "greater than 0"),
+        (["--set", "controller.integral_time_s=-1"], "greater than or equal to 0"),
         (["--set", "nokey"], "expected KEY=VALUE"),
         (["--label", "a/b"], "--label"),
     ],

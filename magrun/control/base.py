@@ -34,6 +34,17 @@ near uniform within a period), for a reference window that starts then (the loop
 and the prediction handed to the next tick is taken back from ``Δt + latency`` to ``Δt``
 the same way.
 
+Integral action (``integral_time`` T > 0): the planner gets the reference window with its
+positions moved by an offset b, which grows after each tick's plan by g (r₀ − x₀), the
+position error at the plan's start, with g = Δt/T · σ₀² / (σ₀² + σ²): σ² the estimate's
+position variance per axis (the estimator's covariance; σ₀ = :data:`INTEGRAL_SIGMA`), so
+the offset follows a bias the measurements show and ignores the noise they carry. Without a
+covariance g = Δt/T. The offset stops growing while a coil is at its limit and its length is
+held to :data:`INTEGRAL_LIMIT` (anti-windup). A planner whose weights let the robot lag
+behind by what its model does not know of it (the robot's mobility, a coil's gain) then
+tracks without that offset: on OctoMag with exact feedback at 25.5 Hz the proposed method's
+RMS went from 12 µm to 3 µm (docs: Control).
+
 After the currents went out, ``prepare(next reference window)`` lets the planner do the next
 tick's work that needs no measurement (the NMPC linearises around its prediction); ``step``
 then only finishes it, so the delay from measurement to currents is the feedback phase.
@@ -86,6 +97,13 @@ class ControlOutput:
 
 #: ticks a controller remembers for late measurements (1 s at the paper's 25.5 Hz)
 MEMORY = 26
+
+#: m: the integral action's offset is held to this length (anti-windup)
+INTEGRAL_LIMIT = 1e-3
+#: a coil's current at this fraction of its limit or more stops the integral action
+SATURATED = 0.98
+#: m: the estimate's position σ at which the integral action is half as fast
+INTEGRAL_SIGMA = 0.2e-3
 
 
 class Estimator(ABC):
@@ -200,12 +218,16 @@ class Controller:
         free_space: FreeSpace | None = None,
         velocity: str = "difference",
         latency: float = 0.0,
+        integral_time: float = 0.0,
     ) -> None:
         if velocity not in ("difference", "model"):
             raise ValueError(f"velocity must be 'difference' or 'model', not {velocity!r}")
         if not (math.isfinite(latency) and latency >= 0):
             raise ValueError(f"latency must be finite and >= 0, got {latency!r}")
+        if not (math.isfinite(integral_time) and integral_time >= 0):
+            raise ValueError(f"integral_time must be finite and >= 0, got {integral_time!r}")
         self.latency = float(latency)
+        self.integral_time = float(integral_time)
         self.name = name
         self.estimator = estimator
         self.planner = planner
@@ -227,6 +249,8 @@ class Controller:
         self._predicted_state: FloatArray | None = None
         self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
+        #: m: the integral action's offset of the reference's positions (module doc)
+        self.reference_offset = np.zeros(2)
         self._memory: deque[_TickMemory] = deque(maxlen=MEMORY)
         #: late measurements fused at their tick, and those older than the memory (dropped)
         self.late_fused = 0
@@ -365,7 +389,34 @@ class Controller:
             state = self._predicted_state
             if self.latency > 0:  # the next plan starts when its currents apply
                 state = self._ahead(state)
-            self.planner.prepare(state, reference, self.currents)
+            self.planner.prepare(state, self._offset(reference), self.currents)
+
+    def _offset(self, reference: FloatArray) -> FloatArray:
+        """``reference`` with its positions moved by the integral action's offset."""
+        if not self.reference_offset.any():
+            return reference
+        shifted = np.array(reference, dtype=np.float64)
+        shifted[:, :2] += self.reference_offset
+        return shifted
+
+    def _integrate(self, reference: FloatArray, start: FloatArray) -> None:
+        """The integral action (module doc): the offset grows by Δt/T_i of the position error
+        at the plan's start, its length held to :data:`INTEGRAL_LIMIT`."""
+        if self.integral_time <= 0:
+            return
+        error = np.asarray(reference[0, :2]) - start[:2]
+        if not np.all(np.isfinite(error)):
+            return
+        gain = self.dt / self.integral_time
+        covariance = self.estimator.covariance
+        if covariance is not None:  # slower where the estimate is uncertain (module doc)
+            variance = float(np.trace(np.asarray(covariance)[:2, :2])) / 2
+            gain *= INTEGRAL_SIGMA**2 / (INTEGRAL_SIGMA**2 + variance)
+        offset = self.reference_offset + error * gain
+        norm = float(np.hypot(*offset))
+        if norm > INTEGRAL_LIMIT:
+            offset *= INTEGRAL_LIMIT / norm
+        self.reference_offset = offset
 
     def replay_step(
         self, measurement: ArrayLike | None, currents: ArrayLike, age: float = 0.0
@@ -392,11 +443,13 @@ class Controller:
         estimate = state[:3].copy()
         start = self._ahead(state)  # where the robot is when these currents apply
         self.planner.observe_uncertainty(self.estimator.covariance)
-        plan = self.planner.plan(start, reference, self.currents)
+        plan = self.planner.plan(start, self._offset(reference), self.currents)
         fault = ""
         if not np.all(np.isfinite(plan.currents)):
             fault = f"the {self.name} planner returned non-finite currents"
         currents = clamp_currents(plan.currents, self.currents, self.max_current, self.max_change)
+        if not np.any(np.abs(currents) >= SATURATED * np.asarray(self.max_current)):
+            self._integrate(reference, start)  # not while a coil is at its limit (anti-windup)
         predicted = plan.predicted_state
         if not np.allclose(currents, plan.currents, atol=1e-6, rtol=0) or not np.all(
             np.isfinite(predicted)

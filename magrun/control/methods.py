@@ -51,6 +51,9 @@ class ControlConfig:
     #: expected time, s, from a tick's observation to its currents reaching the coils: the
     #: controller plans across it (:class:`~magrun.control.base.Controller`)
     latency: float = 0.0
+    #: s: the integral action's time constant (:class:`~magrun.control.base.Controller`), for
+    #: the methods with a Kalman filter (it slows down with the filter's uncertainty); 0: off
+    integral_time: float = 0.0
 
 
 @cache
@@ -109,9 +112,10 @@ def make_controller(
         planner = LinearMPCPlanner(model, params, cfg.dt, cfg.linear_mpc)
         estimator = MeasurementOrPrediction()
     coils = zernike.coils
+    filtered = isinstance(estimator, KalmanPoseFilter)
     return Controller(
         method, estimator, planner, cfg.dt, coils.max_current, coils.max_slew_rate,
         coils.n_channels, free_space,
-        velocity="model" if isinstance(estimator, KalmanPoseFilter) else "difference",
-        latency=cfg.latency,
+        velocity="model" if filtered else "difference", latency=cfg.latency,
+        integral_time=cfg.integral_time if filtered else 0.0,
     )  # fmt: skip
