@@ -8,6 +8,7 @@ system and the shipped OctoMag run closed loops.
 
 from __future__ import annotations
 
+import itertools
 import math
 import textwrap
 from pathlib import Path
@@ -134,6 +135,43 @@ def test_a_synthetic_file_gives_the_dipoles_closed_form(three: Path) -> None:
     assert north.dB[i, j, 1, 1] == pytest.approx(-6 * 2e-7 / r**4, rel=1e-9)
     bg = maps["background"]
     assert_allclose(bg.B[i, j], [2 * 2.7e-5 / 0.3**3, 0.0], rtol=1e-9)  # 2 mT along +x
+
+
+def test_an_mpem_import_selects_orders_by_the_gradient_too(three: Path, tmp_path: Path) -> None:
+    """The dipoles 50 mm off a ±10 mm workspace are nearly linear over it: the field's R²
+    saturates at order 2, whose gradient (the force) is linear and about 20 % off. The
+    importer's selection asks the gradient's R² to saturate too: each channel's order is the
+    first whose next adds < 0.01 to both R², computed here from the report's scores, and its
+    gradient is within 5 % RMS. `magrun field fit --system` refits the same way unless told
+    --field-only, which gives the paper's rule (order 2)."""
+    import json
+
+    report = json.loads((three / "zernike_fit.json").read_text())
+    assert report["selection"]["gradient"] is True
+    for name in ("north", "east", "south"):
+        rep = report["coil_types"][name]
+        scores = rep["orders"]
+        first = next(
+            a["order"] for a, b in itertools.pairwise(scores)
+            if b["r2"] - a["r2"] < 0.01 and b["gradient_r2"] - a["gradient_r2"] < 0.01
+        )  # fmt: skip
+        assert rep["selected_order"] == first > 2
+        assert rep["relative_rms_error"]["gradient_workspace"] < 0.05
+    folder = tmp_path / "copy"
+    folder.mkdir()
+    for f in three.iterdir():
+        (folder / f.name).write_bytes(f.read_bytes())
+    for flags, north in (([], report["coil_types"]["north"]["selected_order"]),
+                         (["--field-only"], 2)):  # fmt: skip
+        result = CliRunner().invoke(
+            cli, ["field", "fit", "--system", str(folder), "--json", *flags]
+        )
+        assert result.exit_code == 0, result.output
+        refit = json.loads(result.output)
+        assert refit["coil_types"]["north"]["selected_order"] == north
+        if flags:
+            gradient_error = refit["coil_types"]["north"]["relative_rms_error"]
+            assert gradient_error["gradient_workspace"] > 0.1  # what the field's rule leaves
 
 
 def test_models_of_a_system_follow_the_shape_contract(three: Path) -> None:

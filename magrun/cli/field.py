@@ -98,6 +98,13 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
     help="Keep the smallest order after which one more order gains less R² than this.",
 )
 @click.option(
+    "--gradient/--field-only",
+    default=None,
+    help="Select orders at which the gradient's R² saturates too (the force), or by the "
+    "field's alone  [default: with --system, as the folder was fitted (import-mpem: "
+    "--gradient); else --field-only, the paper's rule].",
+)
+@click.option(
     "--order",
     "orders",
     multiple=True,
@@ -118,12 +125,13 @@ def field_fit(
     system_dir: Path | None,
     max_order: int,
     r2_saturation: float,
+    gradient: bool | None,
     orders: tuple[str, ...],
     as_json: bool,
 ) -> None:
     """Fit the Zernike model to reference maps and report MAE and R² per coil type and order
     (per channel for a system folder)."""
-    from magrun.field.fitting import fit_reference, parse_orders
+    from magrun.field.fitting import fit_reference, fitted_with_gradient, parse_orders
     from magrun.field.reference import ReferenceMaps
 
     if system_dir is not None:
@@ -132,6 +140,7 @@ def field_fit(
         system = load_coils(system_dir)
         reference = system.maps_path
         out = out or system_dir
+        gradient = fitted_with_gradient(system_dir) if gradient is None else gradient
     else:
         system = load_coils(coils)
         out = out or Path("recordings/field")
@@ -139,8 +148,9 @@ def field_fit(
         fixed = parse_orders(list(orders))
         maps = ReferenceMaps.load(reference)
         result = fit_reference(
-            system, maps, max_order=max_order, r2_saturation=r2_saturation, fixed_orders=fixed
-        )
+            system, maps, max_order=max_order, r2_saturation=r2_saturation, fixed_orders=fixed,
+            gradient=bool(gradient),
+        )  # fmt: skip
     except KeyError as exc:  # str() of a KeyError quotes its message
         raise InputError(str(exc.args[0])) from exc
     except ValueError as exc:
@@ -151,13 +161,16 @@ def field_fit(
         return
     for coil_type, rep in result.report["coil_types"].items():
         unit = "" if coil_type == "background" else "/A"  # a background is in T, not T/A
-        click.echo(f"{coil_type}: selected order {rep['selected_order']} ({rep['selected_by']})")
-        click.echo(f"  order  terms   MAE [mT{unit}]       R²   max err [mT{unit}]")
+        rule = rep["selected_by"]
+        if rule == "r2_saturation" and result.report["selection"]["gradient"]:
+            rule += " of the field and its gradient"
+        click.echo(f"{coil_type}: selected order {rep['selected_order']} ({rule})")
+        click.echo(f"  order  terms   MAE [mT{unit}]       R²   max err [mT{unit}]   R² of ∇B")
         for s in rep["orders"]:
             mark = "*" if s["order"] == rep["selected_order"] else " "
             click.echo(
                 f" {mark}{s['order']:>5} {s['n_terms']:>6} {s['mae_mT']:>12.4f} "
-                f"{s['r2']:>8.5f} {s['max_error_mT']:>16.4f}"
+                f"{s['r2']:>8.5f} {s['max_error_mT']:>16.4f} {s['gradient_r2']:>10.5f}"
             )
         below = rep["fraction_below_4mT"]
         click.echo(

@@ -12,6 +12,13 @@ Order selection: the smallest order N for which one more order adds less than
 also be fixed per coil type (``--order small=4``). Scores use the vector error
 ``|B_fit − B_ref|`` and R² = 1 − Σ|B_fit − B_ref|² / Σ|B_ref − mean(B_ref)|², both components
 together, at unit current (1 A).
+
+With ``gradient`` the order must also saturate the R² of the gradient (its four components
+against the maps' gradient tables): the force on a magnet is the gradient, and where the
+field is nearly linear over the workspace (a system whose coils sit far from it) the field's
+R² saturates at order 2, whose gradient is linear and 10–20 % off. The MPEM importer selects
+so, because an MPEM calibration gives the gradient exactly; the paper's maps and COMSOL
+exports (whose gradients are differences of the field) keep the paper's rule.
 """
 
 from __future__ import annotations
@@ -96,17 +103,28 @@ class OrderScore:
     r2: float
     max_error: float  # T/A
     condition_number: float
+    gradient_r2: float  # R² of the gradient's four components
+
+
+def _r2(fitted: NDArray[np.float64], reference: NDArray[np.float64]) -> float:
+    """1 − Σ|fitted − reference|² / Σ|reference − its mean|², over the first axis."""
+    spread = np.sum((reference - reference.mean(axis=0)) ** 2)
+    return 1.0 - float(np.sum((fitted - reference) ** 2) / spread) if spread > 0 else 1.0
 
 
 def _score(
-    fit: ZernikeCoilFit, points: NDArray[np.float64], B: NDArray[np.float64], cond: float
+    fit: ZernikeCoilFit,
+    points: NDArray[np.float64],
+    B: NDArray[np.float64],
+    G: NDArray[np.float64],
+    cond: float,
 ) -> OrderScore:
-    Bf = fit.field(points)
+    Bf, Gf = fit.evaluate(points)
     err = np.linalg.norm(Bf - B, axis=1)
-    r2 = 1.0 - float(np.sum((Bf - B) ** 2) / np.sum((B - B.mean(axis=0)) ** 2))
     return OrderScore(
-        fit.order, zernike.n_terms(fit.order), float(err.mean()), r2, float(err.max()), cond
-    )
+        fit.order, zernike.n_terms(fit.order), float(err.mean()), _r2(Bf, B), float(err.max()),
+        cond, _r2(Gf, G),
+    )  # fmt: skip
 
 
 def fit_coil_type(
@@ -131,10 +149,12 @@ def fit_coil_type(
     return out
 
 
-def select_order(scores: list[OrderScore], r2_saturation: float) -> int:
-    """Smallest order after which one more order gains less than ``r2_saturation`` in R²."""
+def select_order(scores: list[OrderScore], r2_saturation: float, gradient: bool = False) -> int:
+    """Smallest order after which one more order gains less than ``r2_saturation`` in R²
+    (and, with ``gradient``, in the gradient's R² too)."""
     for cur, nxt in itertools.pairwise(scores):
-        if nxt.r2 - cur.r2 < r2_saturation:
+        gain = max(nxt.r2 - cur.r2, nxt.gradient_r2 - cur.gradient_r2 if gradient else 0.0)
+        if gain < r2_saturation:
             return cur.order
     return scores[-1].order
 
@@ -165,6 +185,7 @@ def fit_reference(
     max_order: int = DEFAULT_MAX_ORDER,
     r2_saturation: float = DEFAULT_R2_SATURATION,
     fixed_orders: Mapping[str, int] | None = None,
+    gradient: bool = False,
 ) -> FitResult:
     """Fit every coil type for orders 1 … ``max_order``, select orders, and report.
 
@@ -180,6 +201,8 @@ def fit_reference(
         R² gain below which one more order is not worth its terms.
     fixed_orders : mapping, optional
         Coil type → order, overriding the automatic choice.
+    gradient : bool
+        Select orders at which the gradient's R² saturates too (module doc).
     """
     fixed = dict(fixed_orders or {})
     unknown = set(fixed) - set(coils.fit_types)
@@ -193,8 +216,10 @@ def fit_reference(
     report: dict[str, Any] = {
         "units": {"mae": "mT at 1 A", "max_error": "mT at 1 A", "gradient": "T/m at 1 A"},
         "selection": {
-            "rule": "smallest order whose next order adds < r2_saturation to R2",
+            "rule": "smallest order whose next order adds < r2_saturation to R2"
+            + (" and to the gradient's R2" if gradient else ""),
             "r2_saturation": r2_saturation,
+            "gradient": gradient,
             "max_order": max_order,
         },
         "coil_types": {},
@@ -205,9 +230,10 @@ def fit_reference(
             continue  # an undriven coil type without a map (e.g. COMSOL exports of two types)
         fmap = reference[coil_type]
         pts, B = fmap.points().reshape(-1, 2), fmap.B.reshape(-1, 2)
+        G = fmap.dB.reshape(-1, 2, 2)
         by_order = fit_coil_type(coils, reference, coil_type, range(1, max_order + 1))
-        scores = [_score(fit, pts, B, cond) for fit, cond in by_order.values()]
-        chosen = fixed.get(coil_type, select_order(scores, r2_saturation))
+        scores = [_score(fit, pts, B, G, cond) for fit, cond in by_order.values()]
+        chosen = fixed.get(coil_type, select_order(scores, r2_saturation, gradient))
         if chosen not in by_order:
             raise ValueError(f"{coil_type}: order {chosen} is outside 1..{max_order}")
         fits[coil_type] = by_order[chosen][0]
@@ -221,14 +247,13 @@ def fit_reference(
                     "n_terms": s.n_terms,
                     "mae_mT": s.mae * 1e3,
                     "r2": s.r2,
+                    "gradient_r2": s.gradient_r2,
                     "max_error_mT": s.max_error * 1e3,
                     "condition_number": s.condition_number,
                 }
                 for s in scores
             ],
-            **_diagnostics(
-                Bf, Gf, pts, B, fmap.dB.reshape(-1, 2, 2), float(np.max(coils.max_current))
-            ),
+            **_diagnostics(Bf, Gf, pts, B, G, float(np.max(coils.max_current))),
         }
         shape = fmap.B.shape[:2]
         figure[f"{coil_type}_field_mT"] = np.linalg.norm(fmap.B, axis=-1) * 1e3
@@ -312,11 +337,14 @@ def parse_orders(items: list[str]) -> dict[str, int]:
     return out
 
 
-def write_system_folder(folder: str | Path, system_yaml: str, maps: ReferenceMaps) -> Path:
+def write_system_folder(
+    folder: str | Path, system_yaml: str, maps: ReferenceMaps, gradient: bool = False
+) -> Path:
     """Write a coil-system folder: ``system.yaml`` (the text given: a map system's or a
     coils file of the paper's kind), ``reference_maps.npz`` and the Zernike model fitted to
-    them with the default order selection (``magrun field fit --system`` refits). What
-    ``magrun field import-mpem`` and ``import-comsol --out DIR`` write. Returns the folder.
+    them with the default order selection, by the gradient too with ``gradient`` (``magrun
+    field fit --system`` refits the same way: :func:`fitted_with_gradient`). What ``magrun
+    field import-mpem`` and ``import-comsol --out DIR`` write. Returns the folder.
     """
     from magrun.field.coils import MAPS_FILE, SYSTEM_FILE
 
@@ -325,5 +353,15 @@ def write_system_folder(folder: str | Path, system_yaml: str, maps: ReferenceMap
     maps.save(out / MAPS_FILE)
     atomic.write_text(out / SYSTEM_FILE, system_yaml)
     coils = CoilSystem.load(out)
-    fit_reference(coils, ReferenceMaps.load(out / MAPS_FILE)).save(out)
+    fit_reference(coils, ReferenceMaps.load(out / MAPS_FILE), gradient=gradient).save(out)
     return out
+
+
+def fitted_with_gradient(folder: str | Path) -> bool:
+    """Whether a system folder's Zernike model was selected by the gradient too (its
+    ``zernike_fit.json`` says; False where it says nothing or cannot be read)."""
+    try:
+        report = json.loads((Path(folder) / REPORT_FILE).read_text())
+        return report["selection"].get("gradient") is True
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False

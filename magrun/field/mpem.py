@@ -17,7 +17,9 @@ calibrations (OctoMag, MiniMag) use.
 :func:`import_mpem` samples a calibration on a plane of the calibration frame and writes a
 coil-system folder (:mod:`magrun.field.coils`): ``system.yaml``, ``reference_maps.npz`` (one
 unit-current map per coil and the background's map if there is one) and the Zernike model
-fitted to them (``zernike_model.json``, with its report, as ``magrun field fit --system``).
+fitted to them (``zernike_model.json``, with its report, as ``magrun field fit --system``),
+its orders selected by the field's and the gradient's R² (:mod:`magrun.field.fitting`): the
+calibration gives the gradient exactly, and the gradient is the force.
 """
 
 from __future__ import annotations
@@ -360,5 +362,6 @@ def import_mpem(
     )
     body = yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False, allow_unicode=True)
     maps_doc = ReferenceMaps(maps=maps, meta=json.loads(json.dumps(meta)))
-    folder = write_system_folder(out, header + body, maps_doc)
+    # an MPEM gives the gradient exactly: the model's orders must follow it (the force)
+    folder = write_system_folder(out, header + body, maps_doc, gradient=True)
     return folder
