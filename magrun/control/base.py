@@ -400,8 +400,9 @@ class Controller:
         return shifted
 
     def _integrate(self, reference: FloatArray, start: FloatArray) -> None:
-        """The integral action (module doc): the offset grows by Δt/T_i of the position error
-        at the plan's start, its length held to :data:`INTEGRAL_LIMIT`."""
+        """The integral action (module doc): the offset grows by g times the position error
+        at the plan's start (g = Δt/T, less where the estimate is uncertain), its length
+        held to :data:`INTEGRAL_LIMIT`."""
         if self.integral_time <= 0:
             return
         error = np.asarray(reference[0, :2]) - start[:2]
