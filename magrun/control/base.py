@@ -399,12 +399,14 @@ class Controller:
         shifted[:, :2] += self.reference_offset
         return shifted
 
-    def _integrate(self, reference: FloatArray, start: FloatArray) -> None:
+    def _integrate(self, reference: FloatArray, start: FloatArray, currents: FloatArray) -> None:
         """The integral action (module doc): the offset grows by g times the position error
         at the plan's start (g = Δt/T, less where the estimate is uncertain), its length
-        held to :data:`INTEGRAL_LIMIT`."""
+        held to :data:`INTEGRAL_LIMIT`; not while a coil of ``currents`` is at its limit."""
         if self.integral_time <= 0:
             return
+        if np.any(np.abs(currents) >= SATURATED * np.asarray(self.max_current)):
+            return  # anti-windup
         error = np.asarray(reference[0, :2]) - start[:2]
         if not np.all(np.isfinite(error)):
             return
@@ -449,8 +451,7 @@ class Controller:
         if not np.all(np.isfinite(plan.currents)):
             fault = f"the {self.name} planner returned non-finite currents"
         currents = clamp_currents(plan.currents, self.currents, self.max_current, self.max_change)
-        if not np.any(np.abs(currents) >= SATURATED * np.asarray(self.max_current)):
-            self._integrate(reference, start)  # not while a coil is at its limit (anti-windup)
+        self._integrate(reference, start, currents)
         predicted = plan.predicted_state
         if not np.allclose(currents, plan.currents, atol=1e-6, rtol=0) or not np.all(
             np.isfinite(predicted)
