@@ -363,7 +363,7 @@ def test_rti_falls_back_on_a_failed_qp(zernike_model, magnet_robot) -> None:
 
 def test_rti_prediction_is_the_model_step(zernike_model, magnet_robot) -> None:
     """The plan's predicted state is one exact model step of the applied currents."""
-    from magrun.robot import discrete_step
+    from magrun.robot import aligned_substep, discrete_step
 
     nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig())
     state, ref, previous = _problem("track")
@@ -373,7 +373,7 @@ def test_rti_prediction_is_the_model_step(zernike_model, magnet_robot) -> None:
         B, G = zernike_model.field_and_gradient(np.array([x, y]), plan.currents)
         return B, G
 
-    expected = discrete_step(tuple(state), field, magnet_robot, 0.04, 2)
+    expected = discrete_step(tuple(state), field, magnet_robot, 0.04, 2, substep=aligned_substep)
     assert_allclose(plan.predicted_state, expected, rtol=1e-9, atol=1e-15)
 
 

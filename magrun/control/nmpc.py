@@ -5,7 +5,7 @@ I₀ … I_{N−1} and the predicted states X₁ … X_N (multiple shooting)::
 
     min   Σ_{k=0}^{N−1} [ e_{p,k}ᵀ Qp e_{p,k} + qθ e_{θ,k}² + I_kᵀ R I_k + ΔI_kᵀ S ΔI_k ]
           + e_{p,N}ᵀ P e_{p,N} + qθ,N e_{θ,N}²
-    s.t.  X_{k+1} = f(X_k, I_k)                 robot.discrete_step with the field model
+    s.t.  X_{k+1} = f(X_k, I_k)                 robot.discrete_step (aligned sub-steps)
           |I_k| ≤ I_max,  |I_k − I_{k−1}| ≤ slew Δt   (I_{−1}: the currents applied last tick)
           |x_k|, |y_k| ≤ workspace half-width − margin   (k ≥ 1)
     soft: (m̂(θ_k) · B(p_k, I_k)) ≥ B_min           heading-stable fields   (k < N)
@@ -156,7 +156,11 @@ cached on disk.
 
 On failure (no convergence, non-finite output) the plan falls back to the
 previous plan's next currents ("shifted"), or to 0 A ("zero") when there is none; the
-controller's safety clamp then bounds the change.
+controller's safety clamp then bounds the change. The tick after a failed one starts afresh,
+as a trial's first tick does (currents held, iterated to convergence): the failed plan was
+linearised where the robot no longer is, and continuing from it failed tick after tick
+until its currents ran out (on a three-coil system under σ = 2 mm noise, 1018 of 1119 ticks,
+the coils held at the plan's last currents while the robot drifted off).
 """
 
 from __future__ import annotations
@@ -179,7 +183,7 @@ from magrun.control.symbolic import CASADI_OPS
 from magrun.field.model import PlanarFieldModel
 from magrun.freespace import INACTIVE, FreeSpace
 from magrun.records import ControllerStatus
-from magrun.robot import RobotParams, discrete_step
+from magrun.robot import RobotParams, aligned_substep, discrete_step
 
 FloatArray = NDArray[np.float64]
 
@@ -438,7 +442,7 @@ class OCP:
         X_si = X * scale
         nxt = discrete_step(
             tuple(X_si[i] for i in range(NX)), lambda _x, _y: (Bl, Gl), nmpc.robot, cfg.dt,
-            cfg.substeps, CASADI_OPS,
+            cfg.substeps, CASADI_OPS, aligned_substep,
         )  # fmt: skip
         X_next = ca.vertcat(*nxt) / scale
         #: X_{k+1}(X_k, u_k), scaled
@@ -965,6 +969,7 @@ class RTISolver(_Backend):
     def reset(self) -> None:
         self._z: FloatArray | None = None
         self._has_plan = False  # the kernel holds a plan
+        self._restart = False  # the last tick failed: the next starts afresh (module doc)
         self._aligned = False  # ... already moved on to the coming tick
         self._prepared: tuple[FloatArray, FloatArray] | None = None  # (par, s_lin)
         self._plan: FloatArray | None = None  # the kernel's last plan s₁ … s_N
@@ -974,7 +979,7 @@ class RTISolver(_Backend):
         stage and linearised there, stage 0 at the predicted start ``s_lin`` = (x, u_prev),
         scaled. False where there is nothing to prepare (no plan yet, or CasADi's QP)."""
         k = self.kernel
-        if k is None or not self._has_plan:
+        if k is None or not self._has_plan or self._restart:
             return False
         if not self._aligned:
             k.shift()
@@ -998,7 +1003,9 @@ class RTISolver(_Backend):
             and np.array_equal(prepared[1][NX:], u_prev)
             and np.array_equal(prepared[0], par[:, 1:])
         )
-        if not self._has_plan:  # cold: hold the currents, rest at x0, iterate to convergence
+        if not self._has_plan or self._restart:
+            # cold: hold the currents, rest at x0, iterate to convergence (after a failed
+            # tick too: the plan it leaves was linearised where the robot no longer is)
             k.set_iterate(np.tile(s0, (self.ocp.N, 1)), np.zeros((self.ocp.N, nu)))
             budget = max(cfg.first_tick_iterations, cfg.iterations)
             ready = False
@@ -1044,7 +1051,7 @@ class RTISolver(_Backend):
                 corrections -= 1
                 budget += 1
         self.robust_retries = k.retries
-        self._has_plan, self._aligned = True, False
+        self._has_plan, self._aligned, self._restart = True, False, False
         S, V = k.iterate()
         self._plan = S
         return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
@@ -1053,6 +1060,7 @@ class RTISolver(_Backend):
         """A kernel tick that failed. A trial's first tick leaves no plan; a later one leaves
         the plan moved on to this tick, whose next currents :meth:`fallback` returns."""
         self.robust_retries = self.kernel.retries if self.kernel is not None else 0
+        self._restart = self._has_plan
         return SolveResult(False, np.zeros(self.ocp.nu), iterations, message)
 
     def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:

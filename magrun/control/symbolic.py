@@ -12,11 +12,13 @@ from typing import Any
 
 import casadi as ca
 
-from magrun.robot import RobotParams, discrete_step
+from magrun.robot import RobotParams, aligned_substep, discrete_step
 
 Expr = Any
 
-CASADI_OPS = SimpleNamespace(sin=ca.sin, cos=ca.cos, exp=ca.exp)
+CASADI_OPS = SimpleNamespace(
+    sin=ca.sin, cos=ca.cos, exp=ca.exp, atan2=ca.atan2, sqrt=ca.sqrt, fmin=ca.fmin, fmax=ca.fmax
+)
 
 
 def casadi_step_function(
@@ -26,6 +28,7 @@ def casadi_step_function(
     dt: float,
     substeps: int = 2,
     name: str = "step",
+    substep: Callable[..., tuple[Any, ...]] = aligned_substep,
 ) -> ca.Function:
     """``name(x[6], I[n]) -> x_next[6]``: :func:`discrete_step` as an SX CasADi function.
 
@@ -38,5 +41,7 @@ def casadi_step_function(
         B, G = field_and_gradient(ca.vertcat(px, py), I)
         return [B[0], B[1]], [[G[0, 0], G[0, 1]], [G[1, 0], G[1, 1]]]
 
-    nxt = discrete_step(tuple(x[i] for i in range(6)), field, params, dt, substeps, CASADI_OPS)
+    nxt = discrete_step(
+        tuple(x[i] for i in range(6)), field, params, dt, substeps, CASADI_OPS, substep
+    )
     return ca.Function(name, [x, I], [ca.vertcat(*nxt)], ["x", "I"], ["x_next"])
