@@ -19,7 +19,7 @@ equations are linear and are solved exactly along the body axes,
 the scheme is stable for any h. The field and its gradient are evaluated once per step at the
 step's start position (the robot moves well under a millimetre in 40 ms); force and torque
 are re-evaluated from them on ``substeps`` sub-steps, because orientation is the fast
-variable (alignment rate |m||B|/d_r up to ~50 1/s next to a small coil at full current).
+variable (alignment rate |m||B|/d_r of tens to hundreds of 1/s: "The model's step" below).
 tests/test_robot.py checks the step against an adaptive stiff integration (Radau) of the
 continuous equations. The simulated plant takes 1 ms sub-steps of this scheme.
 
@@ -43,9 +43,9 @@ Radau (tests/test_robot.py) its two 20 ms sub-steps stay within 0.4–2° and 12
 for fields of 2–100 mT at up to 149° from the robot, where the exponential sub-step's error
 reached 80–175° for the stiff robots.
 
-The kernel is written once over an ``ops`` namespace (``sin``, ``cos``, ``exp``), so NumPy
-floats, NumPy arrays and CasADi expressions (:mod:`magrun.control.symbolic`) all run the
-same code.
+The kernel is written once over an ``ops`` namespace (``sin``, ``cos``, ``exp``, ``atan2``,
+``sqrt``, ``fmin``, ``fmax``), so NumPy floats, NumPy arrays and CasADi expressions
+(:mod:`magrun.control.symbolic`) all run the same code.
 
     >>> from magrun.robot import load_robot
     >>> robot = load_robot("magnet")
