@@ -531,3 +531,27 @@ def test_the_kernel_links_another_hpipm_build_or_warns(
     state, ref, previous = _problem("slew")
     assert nmpc.plan(state, ref, previous).status.success
     assert_allclose(nmpc.backend.currents_plan(), u_default, atol=1e-5)
+
+
+def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, magnet_robot):
+    """An estimate past the position bound, moving outward, with the currents that pushed it
+    there: the plan starts 1 mm inside the bound at rest (the bound is hard, and from on it a
+    push outward leaves no feasible QP) and solves, its states within the bound, for the
+    real-time iteration's kernel and CasADi's QP alike."""
+    from magrun.control.nmpc import OUTSIDE_START
+
+    for qp in ("direct", "casadi"):
+        nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(rti_qp=qp))  # type: ignore[arg-type]
+        state, ref, previous = _problem("wall")
+        pushed = nmpc.plan(state, ref, previous)  # toward a target outside the box
+        assert pushed.status.success
+        bound = nmpc.position_bound
+        outside = np.array([bound + 3e-3, 1e-3, 0.0, 0.02, 0.0, 0.0])
+        inside = np.tile([bound - 5e-3, 0.0, 0.0], (21, 1))
+        plan = nmpc.plan(outside, inside, pushed.currents)
+        assert plan.status.success, plan.status
+        X = nmpc.backend.states_plan()
+        assert X is not None
+        assert np.all(np.abs(X[:, :2] * 1e-3) <= bound + 1e-9)
+        # planned from 1 mm inside the bound, at rest
+        assert plan.predicted_state[0] <= bound - OUTSIDE_START + 1e-3
