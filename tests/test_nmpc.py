@@ -535,11 +535,10 @@ def test_the_kernel_links_another_hpipm_build_or_warns(
 
 def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, magnet_robot):
     """An estimate past the position bound, moving outward, with the currents that pushed it
-    there: the plan starts 1 mm inside the bound at rest (the bound is hard, and from on it a
-    push outward leaves no feasible QP) and solves, its states within the bound, for the
-    real-time iteration's kernel and CasADi's QP alike."""
-    from magrun.control.nmpc import OUTSIDE_START
-
+    there: clipped onto the bound (which is hard for every stage), the tick's QP has no
+    feasible point; the plan is solved again from 1 mm inside the bound at rest, and succeeds
+    with its states within the bound, for the real-time iteration's kernel and CasADi's QP
+    alike."""
     for qp in ("direct", "casadi"):
         nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(rti_qp=qp))  # type: ignore[arg-type]
         state, ref, previous = _problem("wall")
@@ -548,10 +547,21 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
         bound = nmpc.position_bound
         outside = np.array([bound + 3e-3, 1e-3, 0.0, 0.02, 0.0, 0.0])
         inside = np.tile([bound - 5e-3, 0.0, 0.0], (21, 1))
+        solve, starts, outcomes = nmpc.backend.solve, [], []
+
+        def recorded(x0, u_prev, par, solve=solve, starts=starts, outcomes=outcomes):
+            result = solve(x0, u_prev, par)
+            starts.append(np.array(x0) * STATE_SCALE)
+            outcomes.append(result.ok)
+            return result
+
+        nmpc.backend.solve = recorded  # type: ignore[method-assign]
         plan = nmpc.plan(outside, inside, pushed.currents)
+        assert outcomes == [False, True], qp  # on the bound: infeasible; inside: solved
+        assert starts[0][0] == pytest.approx(bound)
+        assert starts[1][0] == pytest.approx(bound - 1e-3)
+        assert_allclose(starts[1][3:], 0.0)
         assert plan.status.success, plan.status
         X = nmpc.backend.states_plan()
         assert X is not None
         assert np.all(np.abs(X[:, :2] * 1e-3) <= bound + 1e-9)
-        # planned from 1 mm inside the bound, at rest
-        assert plan.predicted_state[0] <= bound - OUTSIDE_START + 1e-3
