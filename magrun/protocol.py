@@ -291,6 +291,18 @@ class ControllerSettings(_Strict):
             ),
         )
     )
+    position_uncertainty_mm: (
+        Annotated[float, Field(ge=0, le=MAX_NOISE_MM, allow_inf_nan=False)] | Literal["auto"]
+    ) = Field(
+        "auto",
+        description=(
+            "The position error, mm, that the NMPC's heading-stable field withstands: the "
+            "field along the moment is kept at least this times the field's gradient across "
+            "the moment over tan(field_heading_error_deg); 'auto': twice the Kalman filter's "
+            "steady position sigma before a frame where the coils cannot hold the reference's "
+            "heading along the trajectory, else 0."
+        ),
+    )
     integral_time_s: (
         Annotated[float, Field(ge=0, le=MAX_INTEGRAL_TIME_S, allow_inf_nan=False)] | Literal["auto"]
     ) = Field(

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from magrun.calibration import gains_in_order, load_coil_gains
 from magrun.control import NMPC_METHODS
 from magrun.control.base import Controller
-from magrun.control.estimation import KalmanConfig
+from magrun.control.estimation import KalmanConfig, steady_position_sigma
 from magrun.control.methods import ControlConfig, make_controller, shipped_models
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
@@ -305,8 +305,7 @@ class TrialParts:
     @property
     def frame_ticks(self) -> int:
         """Control ticks per feedback frame."""
-        rate = self.trial.condition.rate_hz
-        return max(1, round(self.protocol.controller.rate_hz / rate)) if rate < math.inf else 1
+        return frame_ticks(self.protocol.controller, self.trial.condition)
 
     def run(
         self,
@@ -396,6 +395,11 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
 #: the NMPC's step damping where the planner's headings leave the reference's (``auto``), per
 #: (I / I_max)²: the paper rig's current weight R
 HELD_DAMPING = 1.0
+#: how many of the Kalman filter's position σ before a frame the NMPC's heading is planned to
+#: withstand where ``auto`` turns it on (:func:`position_uncertainty`): on ``tri`` and
+#: ``three`` (docs/systems.md, 3 trials per cell) 1 σ still lost the robot at 3 Hz, σ = 2 mm
+#: on ``tri``; 4 σ cost accuracy everywhere else
+POSITION_SIGMAS = 2.0
 #: planned_reference's results in this process (_remembered)
 _PLANNED: dict[tuple[Any, ...], Any] = {}
 #: how many times over the paper rig's coils give its protocols' references' velocities
@@ -459,6 +463,27 @@ def integral_time(settings: ControllerSettings, held: bool, factor: float) -> fl
     if settings.integral_time_s != "auto":
         return settings.integral_time_s
     return INTEGRAL_TIME if current_weight(settings, factor) > 1.0 and not held else 0.0
+
+
+def frame_ticks(settings: ControllerSettings, condition: Conditions) -> int:
+    """Control ticks per feedback frame."""
+    rate = condition.rate_hz
+    return max(1, round(settings.rate_hz / rate)) if rate < math.inf else 1
+
+
+def position_uncertainty(
+    settings: ControllerSettings, held: bool, kalman: KalmanConfig, frame_ticks: int
+) -> float:
+    """The position error, m, that the NMPC's heading-stable field withstands (module doc of
+    :mod:`magrun.control.nmpc`, "Position uncertainty"): the protocol's, or ``auto``'s
+    :data:`POSITION_SIGMAS` × the Kalman filter's steady position σ just before a frame
+    (:func:`magrun.control.estimation.steady_position_sigma`) where the planner follows held
+    headings, else 0."""
+    if settings.position_uncertainty_mm != "auto":
+        return settings.position_uncertainty_mm * 1e-3
+    if not held:
+        return 0.0
+    return POSITION_SIGMAS * steady_position_sigma(kalman, frame_ticks)
 
 
 def planned_reference(
@@ -561,6 +586,9 @@ def build_controller(
             config, nmpc=nmpc_tuning(config.nmpc, protocol.controller, held, factor),
             integral_time=integral_time(protocol.controller, held, factor),
         )  # fmt: skip
+        ticks = frame_ticks(protocol.controller, trial.condition)
+        sigma = position_uncertainty(protocol.controller, held, config.kalman, ticks)
+        config = replace(config, nmpc=replace(config.nmpc, position_uncertainty=sigma))
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

@@ -285,6 +285,25 @@ def test_integral_action_where_the_weights_are_raised_and_the_headings_are_the_r
     assert integral_time(ControllerSettings(integral_time_s=2.5), True, 1.0) == 2.5
 
 
+def test_the_heading_withstands_the_filters_position_error_where_it_is_held() -> None:
+    """auto: POSITION_SIGMAS × the Kalman filter's steady position σ before a frame where the
+    planner follows held headings (so 2 × 1.5 mm at 3 Hz with σ = 2 mm, hand-computed from
+    P⁻² − n q² P⁻ − n q² r² = 0 with n = 9, q = 0.3 mm, r = 2 mm: P⁻ = 2.25 mm²), 0 where it
+    follows the reference's (the paper rig's, OctoMag's, MiniMag's trials unchanged); a
+    protocol's number, in mm, wins."""
+    from magrun.control.estimation import KalmanConfig
+    from magrun.protocol import ControllerSettings
+    from magrun.trial import POSITION_SIGMAS, position_uncertainty
+
+    kalman = KalmanConfig(measurement_position=2e-3, process_position=0.3e-3)
+    auto = ControllerSettings()
+    assert position_uncertainty(auto, True, kalman, 9) == pytest.approx(POSITION_SIGMAS * 1.5e-3)
+    assert position_uncertainty(auto, False, kalman, 9) == 0.0
+    given = ControllerSettings(position_uncertainty_mm=0.7)
+    assert position_uncertainty(given, False, kalman, 1) == pytest.approx(0.7e-3)
+    assert position_uncertainty(ControllerSettings(position_uncertainty_mm=0), True, kalman, 9) == 0
+
+
 #: each coil's field over the model's in the sweep below (a plant's per-coil gain error)
 GAINS = np.array([0.97, 1.04, 0.99])
 

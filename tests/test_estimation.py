@@ -15,6 +15,7 @@ from magrun.control.estimation import (
     KalmanConfig,
     KalmanPoseFilter,
     MeasurementOrPrediction,
+    steady_position_sigma,
 )
 
 
@@ -340,3 +341,22 @@ def test_the_outlier_gate_rejects_a_far_frame_and_follows_a_real_move() -> None:
         np.testing.assert_array_equal(gated.update(moved_to, pose), pose)
     assert gated.rejected == 3
     assert np.linalg.norm(gated.update(moved_to, pose)[:2] - pose[:2]) > 0.005
+
+
+@pytest.mark.parametrize("frame_ticks", [1, 9])
+def test_steady_position_sigma_is_the_filters_own_prior_before_a_frame(frame_ticks: int) -> None:
+    """The closed form against the filter itself, run to its periodic steady state with a
+    measurement every ``frame_ticks`` ticks: its position variance just before a frame
+    (rtol 1e-9)."""
+    cfg = KalmanConfig(measurement_position=2e-3, process_position=0.3e-3)
+    kf = KalmanPoseFilter(cfg)
+    kf.reset(np.zeros(3))
+    pose = np.zeros(3)
+    for _ in range(300):
+        for _ in range(frame_ticks - 1):
+            kf.update(None, pose)
+        prior = kf.covariance[0, 0] + cfg.process_position**2  # this tick's P⁻
+        kf.update(pose, pose)
+    assert steady_position_sigma(cfg, frame_ticks) == pytest.approx(math.sqrt(prior), rel=1e-9)
+    with pytest.raises(ValueError, match="frame_ticks"):
+        steady_position_sigma(cfg, 0)

@@ -133,6 +133,18 @@ class KalmanConfig:
         )
 
 
+def steady_position_sigma(config: KalmanConfig, frame_ticks: int = 1) -> float:
+    """The filter's steady position standard deviation just before a frame, m, with a
+    measurement every ``frame_ticks`` ticks: per axis, P⁻ = P + n q² between frames and
+    P = P⁻ r² / (P⁻ + r²) at each, so P⁻ is the positive root of
+    P⁻² − n q² P⁻ − n q² r² = 0 (q, r: process and measurement σ, n = ``frame_ticks``)."""
+    if frame_ticks < 1:
+        raise ValueError(f"frame_ticks must be >= 1, got {frame_ticks}")
+    a = frame_ticks * config.process_position**2
+    r2 = config.measurement_position**2
+    return math.sqrt((a + math.sqrt(a * a + 4 * a * r2)) / 2)
+
+
 #: measurements in a row the outlier gate rejects before it takes the next one anyway
 GATE_PATIENCE = 3
 
