@@ -588,7 +588,9 @@ def build_controller(
         )  # fmt: skip
         ticks = frame_ticks(protocol.controller, trial.condition)
         sigma = position_uncertainty(protocol.controller, held, config.kalman, ticks)
-        config = replace(config, nmpc=replace(config.nmpc, position_uncertainty=sigma))
+        config = replace(config, nmpc=replace(
+            config.nmpc, position_uncertainty=sigma, frame_interval=ticks * config.dt
+        ))  # fmt: skip
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

@@ -567,34 +567,50 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
         assert np.all(np.abs(X[:, :2] * 1e-3) <= bound + 1e-9)
 
 
-def test_position_uncertainty_residual_is_the_fields_turn_per_position_error(
+def test_position_uncertainty_residuals_against_finite_differences(
     zernike_model, magnet_robot
 ) -> None:
-    """The residual √qθ σ Gᵀm̂⊥ / √(B_∥² + B_min²) against central differences of the field's
-    angle over the position at a robot aligned with it (h = 1 µm, the model's numpy field):
-    each component is √qθ σ ∂φ/∂p · B_∥ / √(B_∥² + B_min²), within 1e-5 relative."""
-    sigma = 1.5e-3
-    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(position_uncertainty=sigma, compile=False))
+    """The residuals σ [√qθ Gᵀm̂⊥ / √(B_∥² + B_min²), √Qp |m|/d T_f vec ∂(Gᵀm̂)/∂p] against
+    central differences (h = 1 µm) of the model's numpy field, at a robot aligned with the
+    field as a held one is: the field's angle φ over the position (its turn per error) and
+    the pull Gᵀm̂ over the position (the velocity's change per error), within 1e-5
+    relative."""
+    sigma, frame = 1.5e-3, 0.3
+    cfg = NMPCConfig(position_uncertainty=sigma, frame_interval=frame, compile=False)
+    nmpc = NMPC(zernike_model, magnet_robot, cfg)
     rng = np.random.default_rng(3)
+    h = 1e-6
+    mobility = magnet_robot.moment / min(
+        magnet_robot.drag_parallel, magnet_robot.drag_perpendicular
+    )
     for _ in range(5):
         p = rng.uniform(-0.02, 0.02, 2)
         currents = rng.uniform(-10, 10, nmpc.n_currents)
         B, _ = zernike_model.field_and_gradient(p, currents)
-        theta = math.atan2(B[1], B[0])  # a robot aligned with the field, as a held one is
+        theta = math.atan2(B[1], B[0])
         X = np.array([*p, theta, 0.0, 0.0, 0.0]) / STATE_SCALE
         r = np.asarray(nmpc.problem.uncertainty(X, currents / nmpc.max_current)).ravel()
+        heading = np.array([math.cos(theta), math.sin(theta)])
 
-        def angle(q: np.ndarray, theta: float = theta, currents: np.ndarray = currents) -> float:
+        def angle(q: np.ndarray, currents: np.ndarray = currents) -> float:
             b, _ = zernike_model.field_and_gradient(q, currents)
-            return math.atan2(b[1], b[0]) - theta
+            return math.atan2(b[1], b[0])
 
-        h = 1e-6
-        dphi = np.array([(angle(p + h * e) - angle(p - h * e)) / (2 * h) for e in np.eye(2)])
-        along = 1e3 * (math.cos(theta) * B[0] + math.sin(theta) * B[1])  # mT
-        b_min = nmpc.min_aligned_field * 1e3
-        # ∂φ/∂p in rad/m times σ in m: the turn for an error of σ; the residual floors B_∥
-        expected = math.sqrt(nmpc.config.q_angle) * sigma * dphi * along / math.hypot(along, b_min)
-        assert_allclose(r, expected, rtol=1e-5, atol=1e-9 * np.abs(expected).max())
+        def pull(
+            q: np.ndarray, currents: np.ndarray = currents, heading: np.ndarray = heading
+        ) -> np.ndarray:
+            _, g = zernike_model.field_and_gradient(q, currents)
+            return g.T @ heading  # T/m
+
+        steps = np.eye(2) * h
+        dphi = np.array([(angle(p + e) - angle(p - e)) / (2 * h) for e in steps])  # rad/m
+        dpull = np.column_stack([(pull(p + e) - pull(p - e)) / (2 * h) for e in steps])
+        along = 1e3 * float(heading @ B)  # mT
+        floor = along / math.hypot(along, nmpc.min_aligned_field * 1e3)
+        turn = math.sqrt(cfg.q_angle) * sigma * dphi * floor
+        drift = math.sqrt(cfg.q_position) * sigma / 1e-3 * mobility * frame * dpull.T.ravel()
+        expected = np.concatenate([turn, drift])
+        assert_allclose(r, expected, rtol=1e-5, atol=1e-7 * np.abs(expected).max())
     off = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=False))
     assert np.asarray(off.problem.uncertainty(X, currents / nmpc.max_current)).size == 0
 
@@ -607,7 +623,8 @@ def test_rti_with_position_uncertainty_reaches_the_ipopt_optimum(
     limit, and the residuals change the plan (by more than 1e-3 of the limit)."""
     plans = {}
     for solver in ("rti", "ipopt"):
-        cfg = NMPCConfig(solver=solver, tol=1e-10, position_uncertainty=2e-3, **CONVERGE)  # type: ignore[arg-type]
+        cfg = NMPCConfig(solver=solver, tol=1e-10, position_uncertainty=2e-3,  # type: ignore[arg-type]
+                         frame_interval=0.3, **CONVERGE)  # fmt: skip
         if solver == "ipopt":
             cfg = replace(cfg, compile=False, ipopt={"acceptable_iter": 0})
         nmpc = NMPC(zernike_model, magnet_robot, cfg)

@@ -50,23 +50,29 @@ is the plain B_∥ ≥ B_min.
 
 Position uncertainty
 --------------------
-The model's field is evaluated at the estimate, the robot feels it where it is. A position
+The model's field is evaluated at the estimate; the robot feels it where it is. A position
 error e turns the field it feels by (m̂⊥ · G e) / B_∥ (G the field's gradient, m̂⊥ across
-the moment): little on a system whose field is uniform over millimetres, but on three coils
-the NMPC holds headings with a field of about B_min whose gradient turns it by 40° per
-0.6 mm, and at 3 Hz with σ = 2 mm the robot then turned away from the model's heading
-between frames, the filter followed the model, and every trial lost the robot. With
-``position_uncertainty`` = σ > 0 (per axis) each stage adds the heading error that costs, in
-expectation, to the cost, weighed as qθ weighs a heading error::
+the moment) and changes its pull Gᵀm̂ by ∂(Gᵀm̂)/∂p e, so its velocity by |m|/d times that
+(d the body's smaller drag). Little of either on a system whose field is uniform over
+millimetres; but on three coils the NMPC holds headings with a field of about B_min whose
+gradient turns it by 40° per 0.6 mm, and at 3 Hz with σ = 2 mm the robot then turned and
+moved away from the model's prediction between frames, the filter followed the model, and
+every trial lost the robot. With ``position_uncertainty`` = σ > 0 (per axis) each stage
+adds to the cost what an error of σ would cost, to first order, weighed as qθ weighs a
+heading error and Qp a position error over the frame interval T_f (``frame_interval``, the
+time the estimate runs on the model alone)::
 
-    √qθ σ Gᵀ m̂⊥ / √(B_∥² + B_min²)          (two residuals, rad)
+    σ √qθ Gᵀ m̂⊥ / √(B_∥² + B_min²)              (two residuals, rad)
+    σ √Qp |m|/d T_f vec ∂(Gᵀm̂)/∂p               (four residuals, mm)
 
-so the plan prefers fields that are large against their gradient across the moment where
-the estimate is uncertain. A protocol's ``controller.position_uncertainty_mm: auto`` sets σ
-to twice the Kalman filter's steady position σ just before a frame where the coils cannot
-hold the reference's heading (:func:`magrun.trial.position_uncertainty`), 0 elsewhere: on
-``tri`` (docs/systems.md) at 3 Hz with σ = 2 mm the proposed method went from losing the
-robot in 3 of 3 trials to 1.9 mm.
+so the plan prefers fields that are large against their gradient across the moment, and
+pulls that change little over the estimate's error, where the estimate is uncertain. A
+protocol's ``controller.position_uncertainty_mm: auto`` sets σ to twice the Kalman filter's
+steady position σ just before a frame where the coils cannot hold the reference's heading
+(:func:`magrun.trial.position_uncertainty`), 0 elsewhere, and T_f to the feedback's frame
+interval. On ``tri`` (docs/systems.md) at 3 Hz with σ = 2 mm the proposed method lost the
+robot in 3 of 3 trials without these terms; with the turn alone in 2 of 6 (4.7 mm RMS), with
+both in none of the same 6 (1.7 mm).
 
 Corridor
 --------
@@ -254,6 +260,9 @@ class NMPCConfig:
     # the moment is kept ≥ position_uncertainty · |∂B⊥/∂p| / tan(field_heading_error), B⊥ the
     # field across the moment; 0: the estimate's position is taken as exact
     position_uncertainty: float = 0.0
+    # s: how long the estimate runs on the model between two measurements (the feedback's
+    # frame interval; module doc, "Position uncertainty")
+    frame_interval: float = 0.04
     # corridor (with a FreeSpace): the body's ends clear of the boundaries
     # per mm² of violation, critical boundary (the others get none: contact with them is
     # allowed, and resting on the far wall keeps the body off the critical one)
@@ -511,17 +520,24 @@ class OCP:
             "heading_residual", [X, u], [ca.fmin(0, self.heading_gap(X, u))]
         )
         self.has_heading = cfg.heading_weight > 0
-        # the heading the estimate's position error costs (module doc, "Position
-        # uncertainty"): a position error e turns the field the robot feels by
-        # (m̂⊥ · G e) / B_∥, of variance σ² |Gᵀ m̂⊥|² / B_∥² per axis σ, weighed as qθ weighs
-        # a heading error; B_∥ floored smoothly at B_min (a field against the moment is the
-        # heading term's to forbid)
-        across = ca.vertcat(-ca.sin(X[2]), ca.cos(X[2]))
+        # what the estimate's position error costs (module doc, "Position uncertainty"): a
+        # position error e turns the field the robot feels by (m̂⊥ · G e) / B_∥ (B_∥ floored
+        # smoothly at B_min: a field against the moment is the heading term's to forbid), and
+        # changes the pull on it, Gᵀm̂, by ∂(Gᵀm̂)/∂p e, its velocity by |m|/d times that, over
+        # the frame interval T_f; for e of σ per axis, weighed as qθ and Qp weigh a heading
+        # and a position error
         sigma_mm = cfg.position_uncertainty / 1e-3
-        spread = np.sqrt(cfg.q_angle) * sigma_mm * ca.mtimes(G[:2, :2].T, across)  # mT
+        heading = ca.vertcat(ca.cos(X[2]), ca.sin(X[2]))
+        across = ca.vertcat(-ca.sin(X[2]), ca.cos(X[2]))
+        turn = ca.mtimes(G[:2, :2].T, across) / ca.sqrt(along**2 + b_min**2)  # rad per mm
+        stiffness = ca.jacobian(ca.mtimes(G[:2, :2].T, heading), X[:2]) * 1e3  # T/m² (X: mm)
+        robot = nmpc.robot
+        mobility = robot.moment / min(robot.drag_parallel, robot.drag_perpendicular)  # m²/(T s)
+        drift = mobility * cfg.frame_interval * ca.vec(stiffness)  # mm per mm of error
         self.uncertainty_residual = ca.Function(
-            "uncertainty_residual", [X, u], [spread / ca.sqrt(along**2 + b_min**2)]
-        )
+            "uncertainty_residual", [X, u],
+            [sigma_mm * ca.vertcat(np.sqrt(cfg.q_angle) * turn, np.sqrt(cfg.q_position) * drift)],
+        )  # fmt: skip
         self.has_uncertainty = cfg.position_uncertainty > 0
         #: the heading residual at B_∥ = 0 (a violation of B_min)
         self.heading_scale = np.sqrt(cfg.heading_weight) * b_min
