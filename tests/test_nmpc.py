@@ -570,11 +570,12 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
 def test_position_uncertainty_residuals_against_finite_differences(
     zernike_model, magnet_robot
 ) -> None:
-    """The residuals σ [√qθ Gᵀm̂⊥ / √(B_∥² + B_min²), √Qp |m|/d T_f vec ∂(Gᵀm̂)/∂p] against
-    central differences (h = 1 µm) of the model's numpy field, at a robot aligned with the
-    field as a held one is: the field's angle φ over the position (its turn per error) and
-    the pull Gᵀm̂ over the position (the velocity's change per error), within 1e-5
-    relative."""
+    """The residuals σ [√qθ Gᵀm̂⊥ / b, √Qp |m|/d T_f vec ∂(Gᵀm̂)/∂p], with
+    b = (B_∥ + √(B_∥² + B_min²)) / 2, against central differences (h = 1 µm) of the model's
+    numpy field, at a robot aligned with the field as a held one is: the field's angle φ over
+    the position (its turn per error) and the pull Gᵀm̂ over the position (the velocity's
+    change per error), within 1e-5 relative. Turned against the field the turn's residuals
+    are the same turn over the one-sided floor of B_∥ = −|B|: larger by b(|B|) / b(−|B|)."""
     sigma, frame = 1.5e-3, 0.3
     cfg = NMPCConfig(position_uncertainty=sigma, frame_interval=frame, compile=False)
     nmpc = NMPC(zernike_model, magnet_robot, cfg)
@@ -606,11 +607,17 @@ def test_position_uncertainty_residuals_against_finite_differences(
         dphi = np.array([(angle(p + e) - angle(p - e)) / (2 * h) for e in steps])  # rad/m
         dpull = np.column_stack([(pull(p + e) - pull(p - e)) / (2 * h) for e in steps])
         along = 1e3 * float(heading @ B)  # mT
-        floor = along / math.hypot(along, nmpc.min_aligned_field * 1e3)
+        floor = along / ((along + math.hypot(along, nmpc.min_aligned_field * 1e3)) / 2)
         turn = math.sqrt(cfg.q_angle) * sigma * dphi * floor
         drift = math.sqrt(cfg.q_position) * sigma / 1e-3 * mobility * frame * dpull.T.ravel()
         expected = np.concatenate([turn, drift])
         assert_allclose(r, expected, rtol=1e-5, atol=1e-7 * np.abs(expected).max())
+        flipped = X.copy()
+        flipped[2] += math.pi
+        r_against = np.asarray(nmpc.problem.uncertainty(flipped, currents / nmpc.max_current))
+        b_min = nmpc.min_aligned_field * 1e3
+        ratio = (along + math.hypot(along, b_min)) / (-along + math.hypot(along, b_min))
+        assert_allclose(r_against.ravel()[:2], -turn * ratio, rtol=1e-5)
     off = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=False))
     assert np.asarray(off.problem.uncertainty(X, currents / nmpc.max_current)).size == 0
 
