@@ -311,7 +311,7 @@ class ControllerSettings(_Strict):
             "Integral action of the methods with a Kalman filter (proposed, baseline5): the "
             "reference's positions move by the integrated position error, with this time "
             "constant, s, where the estimate is certain, slower where it is not; 0: off. "
-            "'auto': 0.15 s where the current weights are raised above the paper rig's and "
+            "'auto': 0.1 s where the current weights are raised above the paper rig's and "
             "the coils hold the reference's own headings, else off (docs: Control)."
         ),
     )
