@@ -257,6 +257,15 @@ class KalmanSettings(_Strict):
             "next one is taken); 0: take every measurement."
         ),
     )
+    strong_tracking: bool | Literal["auto"] = Field(
+        "auto",
+        description=(
+            "Scale the filter's position variance up at a frame whose innovations are "
+            "larger than it predicts (the strong tracking filter's fading factor); 'auto': "
+            "on where the coils cannot hold the reference's heading along the trajectory, "
+            "else off."
+        ),
+    )
 
 
 #: the simulated rig's default latency per tick, ms: a camera tick's compute for the proposed

@@ -304,6 +304,22 @@ def test_the_heading_withstands_the_filters_position_error_where_it_is_held() ->
     assert position_uncertainty(ControllerSettings(position_uncertainty_mm=0), True, kalman, 9) == 0
 
 
+def test_strong_tracking_where_the_headings_are_held() -> None:
+    """auto: the filter fades its covariance where the planner follows held headings and not
+    elsewhere (the paper rig's, OctoMag's, MiniMag's trials unchanged); a protocol's choice
+    wins either way."""
+    from magrun.protocol import ControllerSettings, KalmanSettings
+    from magrun.trial import strong_tracking
+
+    auto = ControllerSettings()
+    assert strong_tracking(auto, True) is True
+    assert strong_tracking(auto, False) is False
+    off = ControllerSettings(kalman=KalmanSettings(strong_tracking=False))
+    assert strong_tracking(off, True) is False
+    on = ControllerSettings(kalman=KalmanSettings(strong_tracking=True))
+    assert strong_tracking(on, False) is True
+
+
 #: each coil's field over the model's in the sweep below (a plant's per-coil gain error)
 GAINS = np.array([0.97, 1.04, 0.99])
 
