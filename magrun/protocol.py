@@ -360,14 +360,15 @@ class ControllerSettings(_Strict):
         20.0,
         description="The heading error, deg, that field_error_percent may cause (see there).",
     )
-    soft_constraints: Literal["slack", "penalty"] = Field(
-        "penalty",
+    soft_constraints: Literal["slack", "penalty", "auto"] = Field(
+        "auto",
         description=(
             "How the NMPC's real-time iteration keeps its soft constraints (the heading-stable "
             "field, a phantom's corridor): 'slack', as linearised inequalities with slacks in "
             "each tick's QP; 'penalty', as penalty residuals in the least-squares cost, which "
             "one step cannot see where they are not yet violated. The same optimum; 'slack' "
-            "holds them tick by tick (docs: Control)."
+            "holds them tick by tick (docs: Control). 'auto': 'slack' where the coils cannot "
+            "hold the reference's heading along the trajectory, else 'penalty'."
         ),
     )
     corrective_iterations: Annotated[int, Field(ge=0, le=50)] = Field(

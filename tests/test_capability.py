@@ -320,6 +320,20 @@ def test_strong_tracking_where_the_headings_are_held() -> None:
     assert strong_tracking(on, False) is True
 
 
+def test_soft_constraints_as_slacks_where_the_headings_are_held() -> None:
+    """auto: the NMPC's soft constraints as slacks of its QPs where the planner follows held
+    headings, as penalty residuals elsewhere (OctoMag's and MiniMag's trials unchanged); a
+    protocol's choice wins."""
+    from magrun.protocol import ControllerSettings
+    from magrun.trial import soft_constraints
+
+    auto = ControllerSettings()
+    assert soft_constraints(auto, True) == "slack"
+    assert soft_constraints(auto, False) == "penalty"
+    assert soft_constraints(ControllerSettings(soft_constraints="penalty"), True) == "penalty"
+    assert soft_constraints(ControllerSettings(soft_constraints="slack"), False) == "slack"
+
+
 #: each coil's field over the model's in the sweep below (a plant's per-coil gain error)
 GAINS = np.array([0.97, 1.04, 0.99])
 
