@@ -77,7 +77,8 @@ steady position σ just before a frame where the coils cannot hold the reference
 (:func:`magrun.trial.position_uncertainty`), 0 elsewhere, and T_f to the feedback's frame
 interval. On ``tri`` (docs/systems.md) at 3 Hz with σ = 2 mm the proposed method lost the
 robot in 3 of 3 trials without these terms; with the turn alone in 2 of 6 (4.7 mm RMS), with
-both in none of the same 6 (1.8 mm; the filter without strong tracking).
+both in none of the same 6 (1.8 mm; the filter without strong tracking, the soft
+constraints as penalties).
 
 Corridor
 --------
