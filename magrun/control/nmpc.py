@@ -262,9 +262,9 @@ class NMPCConfig:
     # is kept ≥ field_error · s(I) / tan(field_heading_error), s the channels' fields' norm
     field_error: float = 0.0
     field_heading_error: float = math.radians(20.0)  # rad
-    # the estimate's position error, m (module doc, "Position uncertainty"): the field along
-    # the moment is kept ≥ position_uncertainty · |∂B⊥/∂p| / tan(field_heading_error), B⊥ the
-    # field across the moment; 0: the estimate's position is taken as exact
+    # the estimate's position error per axis, m (module doc, "Position uncertainty"): each
+    # stage pays for the turn of the field and the change of the robot's velocity an error
+    # of this size would cause; 0: the estimate's position is taken as exact
     position_uncertainty: float = 0.0
     # s: how long the estimate runs on the model between two measurements (the feedback's
     # frame interval; module doc, "Position uncertainty")
@@ -526,28 +526,9 @@ class OCP:
             "heading_residual", [X, u], [ca.fmin(0, self.heading_gap(X, u))]
         )
         self.has_heading = cfg.heading_weight > 0
-        # what the estimate's position error costs (module doc, "Position uncertainty"): a
-        # position error e turns the field the robot feels by (m̂⊥ · G e) / B_∥ (B_∥ floored
-        # smoothly at B_min: a field against the moment is the heading term's to forbid), and
-        # changes the pull on it, Gᵀm̂, by ∂(Gᵀm̂)/∂p e, its velocity by |m|/d times that, over
-        # the frame interval T_f; for e of σ per axis, weighed as qθ and Qp weigh a heading
-        # and a position error
-        sigma_mm = cfg.position_uncertainty / 1e-3
-        heading = ca.vertcat(ca.cos(X[2]), ca.sin(X[2]))
-        across = ca.vertcat(-ca.sin(X[2]), ca.cos(X[2]))
-        # B_∥ floored smoothly and one-sided: → B_∥ above B_min, → 0 for a field against the
-        # moment (whose equilibrium a turn of any size overturns)
-        floor = (along + ca.sqrt(along**2 + b_min**2)) / 2
-        turn = ca.mtimes(G[:2, :2].T, across) / floor  # rad per mm
-        stiffness = ca.jacobian(ca.mtimes(G[:2, :2].T, heading), X[:2]) * 1e3  # T/m² (X: mm)
-        robot = nmpc.robot
-        mobility = robot.moment / min(robot.drag_parallel, robot.drag_perpendicular)  # m²/(T s)
-        drift = mobility * cfg.frame_interval * ca.vec(stiffness)  # mm per mm of error
-        self.uncertainty_residual = ca.Function(
-            "uncertainty_residual", [X, u],
-            [sigma_mm * ca.vertcat(np.sqrt(cfg.q_angle) * turn, np.sqrt(cfg.q_position) * drift)],
-        )  # fmt: skip
         self.has_uncertainty = cfg.position_uncertainty > 0
+        if self.has_uncertainty:
+            self.uncertainty_residual = self._uncertainty_residual(nmpc, X, u, G, along, b_min)
         #: the heading residual at B_∥ = 0 (a violation of B_min)
         self.heading_scale = np.sqrt(cfg.heading_weight) * b_min
         self.heading_check = self.maybe_compiled(self.heading_residual)
@@ -574,8 +555,34 @@ class OCP:
         )
         return ca.Function("pose_residual", [X, par], [r])
 
+    @staticmethod
+    def _uncertainty_residual(
+        nmpc: NMPC, X: Any, u: Any, G: Any, along: Any, b_min: float
+    ) -> ca.Function:
+        """What the estimate's position error costs (module doc, "Position uncertainty"): an
+        error e turns the field the robot feels by (m̂⊥ · G e) / b(B_∥) and changes the pull
+        on it, Gᵀm̂, by ∂(Gᵀm̂)/∂p e, its velocity by |m|/d times that over the frame interval
+        T_f; for e of σ per axis, weighed as qθ and Qp weigh a heading and a position error."""
+        cfg = nmpc.config
+        sigma_mm = cfg.position_uncertainty / 1e-3
+        heading = ca.vertcat(ca.cos(X[2]), ca.sin(X[2]))
+        across = ca.vertcat(-ca.sin(X[2]), ca.cos(X[2]))
+        # B_∥ floored smoothly and one-sided: → B_∥ above B_min, → 0 for a field against the
+        # moment (whose equilibrium a turn of any size overturns)
+        floor = (along + ca.sqrt(along**2 + b_min**2)) / 2
+        turn = ca.mtimes(G[:2, :2].T, across) / floor  # rad per mm
+        stiffness = ca.jacobian(ca.mtimes(G[:2, :2].T, heading), X[:2]) * 1e3  # T/m² (X: mm)
+        robot = nmpc.robot
+        mobility = robot.moment / min(robot.drag_parallel, robot.drag_perpendicular)  # m²/(T s)
+        drift = mobility * cfg.frame_interval * ca.vec(stiffness)  # mm per mm of error
+        return ca.Function(
+            "uncertainty_residual", [X, u],
+            [sigma_mm * ca.vertcat(np.sqrt(cfg.q_angle) * turn, np.sqrt(cfg.q_position) * drift)],
+        )  # fmt: skip
+
     def uncertainty(self, X: Any, u: Any) -> Any:
-        """The position uncertainty's heading residuals of X and u (empty without it)."""
+        """The position uncertainty's residuals of X and u, the field's turn (2) and the
+        velocity's change (4); empty without it (``position_uncertainty`` = 0)."""
         return self.uncertainty_residual(X, u) if self.has_uncertainty else ca.DM.zeros(0, 1)
 
     def corridor(self, X: Any, par: Any) -> Any:
