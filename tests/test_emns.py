@@ -335,8 +335,11 @@ def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
     """Every method on tests/data/protocols/tiny.yaml records the poses and currents of
     tests/data/paper_rig_reference.npz (written by tests/make_paper_rig_reference.py; the
     N-channel coil systems left it unchanged). On the machine that wrote it they are equal
-    bit for bit; elsewhere a different CPU may round a sum differently, so the bound is 1e-9
-    of each quantity's scale, far below any change of behaviour."""
+    bit for bit. Another CPU rounds sums differently (the compiled kernels, the QP solvers'
+    active sets), and a closed loop carries that on: on a second machine of the same kind the
+    trials differed by up to 6 nm, 6e-7 rad and 0.34 mA. The bounds, 0.1 µm, 1e-5 rad and
+    5 mA, are 15 times that and far below any change of behaviour (a retune moves the
+    robot by micrometres and the currents by tenths of an ampere)."""
     import sys
 
     sys.path.insert(0, str(ROOT / "tests"))
@@ -348,11 +351,14 @@ def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
     for key in want.files:
         a, b = got[key], want[key]
         assert a.shape == b.shape, key
-        finite = ~np.isnan(b)
-        assert np.array_equal(np.isnan(a), ~finite), key
-        if finite.any():  # the PID predicts nothing: all NaN
-            scale = np.max(np.abs(b[finite])) or 1.0
-            assert np.max(np.abs(a[finite] - b[finite])) <= 1e-9 * scale, key
+        assert np.array_equal(np.isnan(a), np.isnan(b)), key
+        if np.isnan(b).all():  # the PID predicts nothing: all NaN
+            continue
+        if key.endswith("/currents"):
+            assert np.nanmax(np.abs(a - b)) <= 5e-3, key  # A
+        else:
+            assert np.nanmax(np.abs(a[:, :2] - b[:, :2])) <= 1e-7, key  # m
+            assert np.nanmax(np.abs(a[:, 2] - b[:, 2])) <= 1e-5, key  # rad
 
 
 def test_octomag_behind_the_emulated_rig_and_a_driver_of_other_coils(tmp_path: Path) -> None:
