@@ -262,8 +262,16 @@ class KalmanSettings(_Strict):
         description=(
             "Scale the filter's position variance up at a frame whose innovations are "
             "larger than it predicts (the strong tracking filter's fading factor); 'auto': "
-            "on where the coils cannot hold the reference's heading along the trajectory, "
-            "else off."
+            "on where the coils cannot hold the reference's heading along the trajectory "
+            "and the filter is not linearised, else off."
+        ),
+    )
+    linearised: bool = Field(
+        True,
+        description=(
+            "Propagate the filter's covariance through the model's Jacobian (an extended "
+            "Kalman filter: P = F P F' + Q, F the one-tick prediction's derivative by the "
+            "pose, under the currents applied); false: F = I, the paper's filter."
         ),
     )
 

@@ -262,6 +262,7 @@ def control_config(
             heading_bias=math.radians(k.heading_bias_sigma_deg),
             mobility=k.mobility_sigma,
             outlier_gate=k.outlier_gate_sigma,
+            linearised=k.linearised,
         ),
     )
 
@@ -502,13 +503,15 @@ def soft_constraints(settings: ControllerSettings, held: bool) -> Literal["slack
 def strong_tracking(settings: ControllerSettings, held: bool) -> bool:
     """Whether the Kalman filter fades its position covariance by its innovations (module doc
     of :mod:`magrun.control.estimation`, "Strong tracking"): the protocol's choice, or
-    ``auto``'s: where the planner follows held headings. On ``tri`` and ``three``
-    (docs/systems.md) at 3 Hz with σ = 2 mm the proposed method lost the robot in 6 of 6
-    trials on ``three`` without it and in none with it; on OctoMag and MiniMag, whose model
-    the filter can trust, it cost 5–20 % (8 trials)."""
+    ``auto``'s: where the planner follows held headings and the filter is not linearised.
+    On ``three`` (docs/systems.md) at 3 Hz with σ = 2 mm the proposed method with the
+    paper's filter (F = I) lost the robot in 6 of 6 trials without it and in none with it;
+    on OctoMag and MiniMag, whose model the filter can trust, it cost 5–20 % (8 trials). The
+    linearised filter follows the same robots by its model's Jacobian, and the fading then
+    cost 5–32 % on ``tri`` and ``three`` (3 trials)."""
     if settings.kalman.strong_tracking != "auto":
         return settings.kalman.strong_tracking
-    return held
+    return held and not settings.kalman.linearised
 
 
 def planned_reference(

@@ -304,16 +304,20 @@ def test_the_heading_withstands_the_filters_position_error_where_it_is_held() ->
     assert position_uncertainty(ControllerSettings(position_uncertainty_mm=0), True, kalman, 9) == 0
 
 
-def test_strong_tracking_where_the_headings_are_held() -> None:
-    """auto: the filter fades its covariance where the planner follows held headings and not
-    elsewhere (the paper rig's, OctoMag's, MiniMag's trials unchanged); a protocol's choice
-    wins either way."""
+def test_strong_tracking_where_the_headings_are_held_and_the_filter_is_not_linearised() -> None:
+    """auto: the paper's filter (F = I) fades its covariance where the planner follows held
+    headings and not elsewhere; the linearised filter (the default) never; a protocol's
+    choice wins either way."""
     from magrun.protocol import ControllerSettings, KalmanSettings
     from magrun.trial import strong_tracking
 
     auto = ControllerSettings()
-    assert strong_tracking(auto, True) is True
+    assert auto.kalman.linearised is True
+    assert strong_tracking(auto, True) is False
     assert strong_tracking(auto, False) is False
+    paper = ControllerSettings(kalman=KalmanSettings(linearised=False))
+    assert strong_tracking(paper, True) is True
+    assert strong_tracking(paper, False) is False
     off = ControllerSettings(kalman=KalmanSettings(strong_tracking=False))
     assert strong_tracking(off, True) is False
     on = ControllerSettings(kalman=KalmanSettings(strong_tracking=True))
@@ -387,3 +391,24 @@ def test_the_nmpc_solves_every_tick_on_three_coils(
         assert np.all(np.abs(plan.currents) <= nmpc.max_current + 1e-9)
         currents = plan.currents
         state = nmpc.predict(state, currents * GAINS)  # coils a few per cent off the model
+
+
+@pytest.mark.parametrize("linearised", [True, False])
+def test_a_protocols_filter_choice_reaches_the_filter(linearised: bool) -> None:
+    """``controller.kalman.linearised`` is the Kalman filter's (and its controller computes
+    the prediction's Jacobian only for a filter that uses it)."""
+    from magrun.control.estimation import KalmanPoseFilter
+    from magrun.protocol import Protocol
+    from magrun.trial import control_config
+
+    protocol = Protocol.model_validate(
+        {
+            "name": "f", "description": "filter", "robot": "magnet", "workspace": {"kind": "open"},
+            "trajectory": {"kind": "s_curve"}, "methods": ["proposed"], "trials": 1,
+            "controller": {"kalman": {"linearised": linearised}},
+        }
+    )  # fmt: skip
+    (trial,) = protocol.expand()
+    config = control_config(protocol.controller, protocol.robot_params(), trial.condition)
+    assert config.kalman.linearised is linearised
+    assert KalmanPoseFilter(config.kalman).uses_jacobian is linearised

@@ -187,10 +187,12 @@ class _DriftPlanner(Planner):
 def _estimator(kind: str):
     from magrun.control.estimation import KalmanConfig, KalmanPoseFilter, MeasurementOrPrediction
 
-    return KalmanPoseFilter(KalmanConfig()) if kind == "kalman" else MeasurementOrPrediction()
+    if kind == "measurement":
+        return MeasurementOrPrediction()
+    return KalmanPoseFilter(KalmanConfig(linearised=kind == "linearised"))
 
 
-@pytest.mark.parametrize("kind", ["kalman", "measurement"])
+@pytest.mark.parametrize("kind", ["kalman", "linearised", "measurement"])
 def test_a_late_measurement_gives_the_estimate_of_one_fused_in_time(kind: str) -> None:
     """Measurements taken every 3rd tick and delivered 2 ticks (2.3 periods) late: where the
     late controller has received what the in-time one had, their estimates agree (1e-12)."""
@@ -201,7 +203,7 @@ def test_a_late_measurement_gives_the_estimate_of_one_fused_in_time(kind: str) -
     measured = truth + rng.normal(0.0, 5e-4, truth.shape)
 
     def controller() -> Controller:
-        velocity = "model" if kind == "kalman" else "difference"
+        velocity = "difference" if kind == "measurement" else "model"
         c = Controller("t", _estimator(kind), _DriftPlanner(), dt, 30.0, 1e4, 3, velocity=velocity)
         c.reset(np.zeros(3))
         return c
@@ -367,3 +369,46 @@ def test_a_latency_aware_loop_records_the_reference_of_the_observation_time(
         log = run_trial(c, rig, reference, duration=1.0, latency=0.015)
         assert_allclose(log.desired, reference.pose(log.t), rtol=0, atol=1e-15)
         assert c.latency == lead
+
+
+class _AffinePlanner(_DriftPlanner):
+    """A model whose next pose is affine in the pose, p⁺ = A p + c(I): its Jacobian is A."""
+
+    A = np.array([[1.1, 0.05, 2e-3], [-0.02, 0.9, -1e-3], [3.0, -2.0, 0.8]])
+
+    def predict(self, state, currents) -> np.ndarray:
+        s = np.asarray(state, dtype=np.float64)
+        p = self.A @ s[:3] + 1e-4 * np.asarray(currents[:3], dtype=np.float64)
+        return np.concatenate([p, np.zeros(3)])
+
+
+@pytest.mark.parametrize("latency", [0.0, 0.015])
+def test_a_linearised_filter_gets_the_prediction_jacobian_across_the_latency(
+    latency: float,
+) -> None:
+    """The controller hands a linearised filter ∂(next pose)/∂(pose) of its prediction, by
+    central differences: for an affine model p⁺ = A p + c, and latency L (f = L/Δt), the
+    prediction goes ahead by f of a step and back by 1 − f (module doc), so the Jacobian is
+    (f I + (1 − f) A)((1 − f) I + f A), and A without latency (1e-9); a filter that does
+    not use it (the paper's) gets none. The next tick's filter gets it as its F."""
+    from magrun.control.estimation import KalmanConfig, KalmanPoseFilter
+
+    dt = 0.04
+    f = latency / dt
+    I3, A = np.eye(3), _AffinePlanner.A
+    expected = (f * I3 + (1 - f) * A) @ ((1 - f) * I3 + f * A)
+    for linearised in (True, False):
+        kf = KalmanPoseFilter(KalmanConfig(linearised=linearised))
+        c = Controller("t", kf, _AffinePlanner(), dt, 30.0, 1e4, 3, latency=latency,
+                       velocity="model")  # fmt: skip
+        c.reset(np.array([1e-3, -1e-3, 0.2]))
+        c.replay_step(None, np.array([1.0, -2.0, 0.5]))
+        c.prepare(np.zeros((21, 3)))  # computed there, off the feedback path
+        if linearised:
+            assert_allclose(c._jacobian, expected, rtol=0, atol=1e-9)
+        else:
+            assert c._jacobian is None
+        P = kf.covariance
+        c.replay_step(None, np.zeros(3))
+        F = expected if linearised else I3
+        assert_allclose(kf.covariance, F @ P @ F.T + kf.Q, rtol=1e-7)

@@ -17,6 +17,11 @@ at every fluoroscopy frame, so the difference spikes there (~20 mm/s at 3 Hz and
 the drag-dominated robot's velocity is set by the field within a few ms, and the model's
 prediction of it is what the plan needs.
 
+An estimator that propagates its covariance through the model (:attr:`Estimator.uses_jacobian`,
+the linearised Kalman filter) gets with each prediction its Jacobian by the pose, by central
+differences of the same one-tick prediction (:data:`JACOBIAN_STEPS`); others get none and
+cost nothing.
+
 A measurement may describe the robot as it was some time ago (``step(..., age=s)``: a
 camera's or C-arm's frame age, known from the frame's time stamp). The controller then fuses
 it at the tick it was taken, nearest ``age``: it goes back to its state at the start of that
@@ -104,6 +109,8 @@ INTEGRAL_LIMIT = 1e-3
 SATURATED = 0.98
 #: m: the estimate's position σ at which the integral action is half as fast
 INTEGRAL_SIGMA = 0.2e-3
+#: the central differences' steps of the prediction's Jacobian (x, y in m, θ in rad)
+JACOBIAN_STEPS = (1e-5, 1e-5, 1e-4)
 
 
 class Estimator(ABC):
@@ -125,9 +132,19 @@ class Estimator(ABC):
         that belongs here); the new pose. By default the latest measurement wins."""
         return self.update(measurement, None)
 
+    #: whether :meth:`update` uses the prediction's Jacobian (the controller computes it only
+    #: for an estimator that does)
+    uses_jacobian = False
+
     @abstractmethod
-    def update(self, measurement: FloatArray | None, prediction: FloatArray | None) -> FloatArray:
-        """The pose estimate (3,) at this tick."""
+    def update(
+        self,
+        measurement: FloatArray | None,
+        prediction: FloatArray | None,
+        jacobian: FloatArray | None = None,
+    ) -> FloatArray:
+        """The pose estimate (3,) at this tick; ``jacobian`` (3×3): the prediction's
+        derivative by the last tick's pose, where :attr:`uses_jacobian`."""
 
     @property
     def covariance(self) -> FloatArray | None:
@@ -246,6 +263,9 @@ class Controller:
         self.planner.reset()
         self._previous_estimate = p
         self._prediction: FloatArray | None = None
+        self._jacobian: FloatArray | None = None
+        #: the state and currents of the last prediction, until its Jacobian is computed
+        self._linearise_at: tuple[FloatArray, FloatArray] | None = None
         self._predicted_state: FloatArray | None = None
         self._predicted_velocity: FloatArray | None = None
         self.currents = np.zeros(self.n_channels)
@@ -260,14 +280,15 @@ class Controller:
         """What a tick starts from (the estimator's state and the last tick's outcome)."""
         return (
             self.estimator.snapshot(), self._previous_estimate, self._prediction,
-            self._predicted_state, self._predicted_velocity, self.currents,
+            self._predicted_state, self._predicted_velocity, self.currents, self._jacobian,
+            self._linearise_at,
         )  # fmt: skip
 
     def _restore(self, state: tuple[object, ...]) -> None:
         self.estimator.restore(state[0])
         (
             self._previous_estimate, self._prediction, self._predicted_state,
-            self._predicted_velocity, self.currents,
+            self._predicted_velocity, self.currents, self._jacobian, self._linearise_at,
         ) = state[1:]  # type: ignore[assignment]  # fmt: skip
 
     def _ahead(self, state: FloatArray) -> FloatArray:
@@ -310,7 +331,7 @@ class Controller:
                 tick.start = self._state()
             state = self._estimate_with(tick.measurements)
             predicted = self._next(state, tick.currents)
-            self._advance(state[:3].copy(), predicted, tick.currents)
+            self._advance(state[:3].copy(), predicted, tick.currents, state)
         self.late_fused += 1
 
     def _begin(self, measurement: ArrayLike | None, age: float) -> FloatArray:
@@ -363,7 +384,8 @@ class Controller:
     def _estimate(self, measurement: ArrayLike | None) -> FloatArray:
         """The estimation half of a tick: the state ``[x, y, θ, vx, vy, ω]`` the planner sees."""
         z = None if measurement is None else np.asarray(measurement, dtype=np.float64)
-        estimate = self.estimator.update(z, self._prediction)
+        self._linearise()
+        estimate = self.estimator.update(z, self._prediction, self._jacobian)
         if self.free_space is not None:
             estimate = self._into_free_space(estimate, self.free_space, z is not None)
         if self.velocity == "model" and self._predicted_velocity is not None:
@@ -374,7 +396,30 @@ class Controller:
             velocity = delta / self.dt
         return np.concatenate([estimate, velocity])
 
-    def _advance(self, estimate: FloatArray, predicted: FloatArray, currents: FloatArray) -> None:
+    def _linearise(self) -> None:
+        """The last prediction's Jacobian, if it is still to compute (:meth:`prepare`
+        computes it off the feedback path; a replay or a late measurement's re-run here)."""
+        if self._linearise_at is not None:
+            self._jacobian = self._transition(*self._linearise_at)
+            self._linearise_at = None
+
+    def _transition(self, state: FloatArray, currents: FloatArray) -> FloatArray | None:
+        """∂ :meth:`_next` (pose) / ∂ ``state``'s pose, by central differences (the model's
+        linearisation: an extended Kalman filter's F); None where it is not finite."""
+        J = np.empty((3, 3))
+        for j, h in enumerate(JACOBIAN_STEPS):
+            up, down = state.copy(), state.copy()
+            up[j] += h
+            down[j] -= h
+            J[:, j] = (self._next(up, currents)[:3] - self._next(down, currents)[:3]) / (2 * h)
+        return J if np.all(np.isfinite(J)) else None
+
+    def _advance(
+        self, estimate: FloatArray, predicted: FloatArray, currents: FloatArray,
+        state: FloatArray,
+    ) -> None:  # fmt: skip
+        self._jacobian = None
+        self._linearise_at = (state, currents) if self.estimator.uses_jacobian else None
         self._previous_estimate = estimate
         self._prediction = predicted[:3].copy()
         self._predicted_state = predicted.copy() if predicted.size >= 6 else None
@@ -385,6 +430,7 @@ class Controller:
         """The planner's preparation for the next tick (:meth:`Planner.prepare`), from the
         prediction of this tick's plan: call it after the currents went out, before the next
         measurement. ``reference``: the next tick's window."""
+        self._linearise()  # the estimator's Jacobian of the prediction, off the feedback path
         if self._predicted_state is not None:
             state = self._predicted_state
             if self.latency > 0:  # the next plan starts when its currents apply
@@ -434,7 +480,7 @@ class Controller:
         self._memory[-1].currents = applied
         predicted = self._next(state, applied)
         estimate = state[:3].copy()
-        self._advance(estimate, predicted, applied)
+        self._advance(estimate, predicted, applied, state)
         return estimate, predicted[:3].copy()
 
     def step(
@@ -459,7 +505,7 @@ class Controller:
             predicted = self.planner.predict(start, currents)
         predicted = self._back(start, predicted)
         self._memory[-1].currents = currents
-        self._advance(estimate, predicted, currents)
+        self._advance(estimate, predicted, currents, state)
         return ControlOutput(currents, estimate, predicted[:3].copy(), plan.status, fault)
 
 
