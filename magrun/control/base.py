@@ -419,7 +419,8 @@ class Controller:
         state: FloatArray,
     ) -> None:  # fmt: skip
         self._jacobian = None
-        self._linearise_at = (state, currents) if self.estimator.uses_jacobian else None
+        uses = self.estimator.uses_jacobian
+        self._linearise_at = (state.copy(), currents.copy()) if uses else None
         self._previous_estimate = estimate
         self._prediction = predicted[:3].copy()
         self._predicted_state = predicted.copy() if predicted.size >= 6 else None
