@@ -14,7 +14,7 @@ With no measurement the prediction is the estimate (and P grows by Q). The angle
 is wrapped to (−π, π] by moving the measured θ next to the predicted one before the update.
 
 Linearised filter (``linearised``, the protocols' default)
---------------------------------------------------------
+----------------------------------------------------------
 F = I says an error of the estimate stays the same size over a tick. Where the coils' pull
 depends on where the robot is, it does not: a robot 1 mm off the estimate feels another
 gradient, so it moves another way than the model's prediction, and the error grows (or
