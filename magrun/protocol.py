@@ -261,9 +261,10 @@ class KalmanSettings(_Strict):
         "auto",
         description=(
             "Scale the filter's position variance up at a frame whose innovations are "
-            "larger than it predicts (the strong tracking filter's fading factor); 'auto': "
-            "on where the coils cannot hold the reference's heading along the trajectory "
-            "and the filter is not linearised, else off."
+            "larger than it predicts (the strong tracking filter's fading factor; with the "
+            "linearised filter only where they are ten times larger: a divergence guard); "
+            "'auto': on with the linearised filter, and with the paper's where the coils "
+            "cannot hold the reference's heading along the trajectory."
         ),
     )
     linearised: bool = Field(

@@ -304,24 +304,26 @@ def test_the_heading_withstands_the_filters_position_error_where_it_is_held() ->
     assert position_uncertainty(ControllerSettings(position_uncertainty_mm=0), True, kalman, 9) == 0
 
 
-def test_strong_tracking_where_the_headings_are_held_and_the_filter_is_not_linearised() -> None:
-    """auto: the paper's filter (F = I) fades its covariance where the planner follows held
-    headings and not elsewhere; the linearised filter (the default) never; a protocol's
-    choice wins either way."""
+def test_strong_tracking_guards_the_linearised_filter_and_helps_the_papers_where_held() -> None:
+    """auto: with the linearised filter (the default) the fading is on everywhere as a
+    divergence guard (β = GUARD_WEAKENING); with the paper's filter (F = I) it is on where
+    the planner follows held headings, at β = 1.5; a protocol's choice of on or off wins
+    either way, with the weakening of its filter."""
+    from magrun.control.estimation import KalmanConfig
     from magrun.protocol import ControllerSettings, KalmanSettings
-    from magrun.trial import strong_tracking
+    from magrun.trial import GUARD_WEAKENING, strong_tracking
 
     auto = ControllerSettings()
     assert auto.kalman.linearised is True
-    assert strong_tracking(auto, True) is False
-    assert strong_tracking(auto, False) is False
+    assert strong_tracking(auto, True) == (True, GUARD_WEAKENING)
+    assert strong_tracking(auto, False) == (True, GUARD_WEAKENING)
     paper = ControllerSettings(kalman=KalmanSettings(linearised=False))
-    assert strong_tracking(paper, True) is True
-    assert strong_tracking(paper, False) is False
+    assert strong_tracking(paper, True) == (True, KalmanConfig.weakening)
+    assert strong_tracking(paper, False) == (False, KalmanConfig.weakening)
     off = ControllerSettings(kalman=KalmanSettings(strong_tracking=False))
-    assert strong_tracking(off, True) is False
-    on = ControllerSettings(kalman=KalmanSettings(strong_tracking=True))
-    assert strong_tracking(on, False) is True
+    assert strong_tracking(off, True) == (False, GUARD_WEAKENING)
+    on = ControllerSettings(kalman=KalmanSettings(strong_tracking=True, linearised=False))
+    assert strong_tracking(on, False) == (True, KalmanConfig.weakening)
 
 
 def test_soft_constraints_as_slacks_where_the_headings_are_held() -> None:

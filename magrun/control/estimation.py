@@ -112,7 +112,11 @@ factor::
 
 so where the innovations are larger than the filter predicts, its position variance (and
 with it the weight of the frame) grows by λ before the update; where they are not, λ = 1
-and the filter is the plain one. The heading's own variance is left as it is.
+and the filter is the plain one. The heading's own variance is left as it is. With a large
+β (10: :data:`magrun.trial.GUARD_WEAKENING`) it acts only where the innovations are far
+larger than the measurement noise and the prior together, as a guard against the linearised
+filter's divergence where its model is wrong: there it trusts the model more than F = I,
+and a model far off can hold it off for seconds.
 
 Defaults (:class:`KalmanConfig`): measurement σ 1 mm and 3°, process σ 0.3 mm and 2° per
 40 ms tick (the NMPC's one-step prediction error on the simulated plant is ~0.1 mm, plus the
