@@ -477,3 +477,40 @@ def test_on_an_unstable_model_the_linearised_filter_is_the_optimal_one() -> None
     paper = ((1 - gain) ** 2 * q + gain**2 * r) / (1 - (1 - gain) ** 2 * a**2)
     assert var[False] == pytest.approx(paper, rel=0.15)
     assert paper > 1.8 * posterior[0, 0]
+
+
+def test_strong_tracking_guards_a_linearised_filter_whose_model_is_wrong() -> None:
+    """A linearised filter whose model says errors shrink (J = 0.3 I per tick) and the robot
+    stands still, while it moves 0.1 mm per tick, measured every 9th tick (σ = 2 mm): the
+    filter believes its prior (P⁻ ≈ Q) and is left behind: after 80 frames (72 mm) it lags
+    by more than 50 mm; with the guard (strong tracking, β = 10) by less than 5 σ (10 mm;
+    measured 70 and 5.8 mm). Where the model is right (the step and J = I) the guard never fades (λ = 1 at every
+    frame) and the estimates are the unguarded filter's to the last digit."""
+    from magrun.trial import GUARD_WEAKENING
+
+    noise = np.random.default_rng(5).normal(0.0, 2e-3, (80, 3)) * [1, 1, 0]
+
+    def run(guard: bool, model_knows: bool) -> tuple[float, list[np.ndarray], float]:
+        cfg = KalmanConfig(measurement_position=2e-3, process_position=0.05e-3, linearised=True,
+                           strong_tracking=guard, weakening=GUARD_WEAKENING)  # fmt: skip
+        kf = KalmanPoseFilter(cfg)
+        kf.reset(np.zeros(3))
+        J = np.eye(3) if model_knows else np.diag([0.3, 0.3, 1.0])
+        estimates, faded = [], 1.0
+        for frame in range(80):
+            for tick in range(9):
+                truth = np.array([1e-4 * (9 * frame + tick + 1), 0.0, 0.0])
+                step = np.array([1e-4, 0.0, 0.0]) if model_knows else np.zeros(3)
+                z = truth + noise[frame] if tick == 8 else None
+                estimates.append(kf.update(z, kf.pose + step, J))
+                faded = max(faded, kf.fading)
+        return float(truth[0] - estimates[-1][0]), estimates, faded
+
+    lag, _, _ = run(False, False)
+    guarded, _, _ = run(True, False)
+    assert lag > 50e-3
+    assert abs(guarded) < 10e-3
+    _, plain, _ = run(False, True)
+    _, kept, faded = run(True, True)
+    assert faded == 1.0
+    assert_allclose(np.array(kept), np.array(plain), rtol=0, atol=0)
