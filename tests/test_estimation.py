@@ -484,8 +484,9 @@ def test_strong_tracking_guards_a_linearised_filter_whose_model_is_wrong() -> No
     stands still, while it moves 0.1 mm per tick, measured every 9th tick (σ = 2 mm): the
     filter believes its prior (P⁻ ≈ Q) and is left behind: after 80 frames (72 mm) it lags
     by more than 50 mm; with the guard (strong tracking, β = 10) by less than 5 σ (10 mm;
-    measured 70 and 5.8 mm). Where the model is right (the step and J = I) the guard never fades (λ = 1 at every
-    frame) and the estimates are the unguarded filter's to the last digit."""
+    measured 70 and 5.8 mm). Where the model is right (the step and J = I) the guard never
+    fades (λ = 1 at every frame) and the estimates are the unguarded filter's to the last
+    digit."""
     from magrun.trial import GUARD_WEAKENING
 
     noise = np.random.default_rng(5).normal(0.0, 2e-3, (80, 3)) * [1, 1, 0]
