@@ -265,7 +265,11 @@ def test_hardware_needs_a_driver_and_one_job(tmp_path: Path) -> None:
 
 
 def test_bench_rig_json() -> None:
-    """The figures add up: every trial ok with latencies, each stall caught after the timeout."""
+    """The figures add up: every trial ok with latencies, each stall caught after the timeout.
+    The reaction is timed from the acknowledgement's arrival, which the emulator sent after
+    it armed the watchdog: on a loaded machine that transit and the poller's wake-up make it
+    read a little short of the 50 ms (49.7 ms measured beside two busy processes), so the
+    bound leaves 5 ms for them."""
     from click.testing import CliRunner
 
     from magrun.cli import cli
@@ -279,7 +283,7 @@ def test_bench_rig_json() -> None:
         assert t["latency_median_ms"] <= t["latency_p99_ms"] <= t["latency_max_ms"]
     w = doc["watchdog"]
     assert w["stalls"] == 2
-    assert 50 <= w["reaction_median_ms"] <= w["reaction_max_ms"]
+    assert 50 - 5 <= w["reaction_median_ms"] <= w["reaction_max_ms"]
     assert 0 <= w["ramp_to_zero_median_ms"] <= w["ramp_to_zero_max_ms"]
 
 
