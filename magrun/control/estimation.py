@@ -208,7 +208,6 @@ class KalmanPoseFilter(Estimator):
     def __init__(self, config: KalmanConfig | None = None) -> None:
         self.config = config or KalmanConfig()
         c = self.config
-        self.uses_jacobian = c.linearised
         if not c.heading_bias >= 0:
             raise ValueError(f"heading_bias must be >= 0, got {c.heading_bias}")
         if not c.outlier_gate >= 0:
@@ -324,6 +323,11 @@ class KalmanPoseFilter(Estimator):
             return True
         self._run = 0
         return False
+
+    @property
+    def uses_jacobian(self) -> bool:  # type: ignore[override]
+        """Whether :meth:`update` propagates the covariance through the given Jacobian."""
+        return self.config.linearised
 
     @property
     def pose(self) -> FloatArray:
