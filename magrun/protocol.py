@@ -309,6 +309,17 @@ class ControllerSettings(_Strict):
             ),
         )
     )
+    wrench_scale: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
+        Field(
+            "auto",
+            description=(
+                "A factor on the two-layer baselines' (2 to 4) wrench: the paper rig's force "
+                "and torque limits and allocation references, set for its magnet robot; "
+                "'auto': scaled by the robot's drags over the magnet robot's, the limits "
+                "kept within what the coils typically give the robot."
+            ),
+        )
+    )
     position_uncertainty_mm: (
         Annotated[float, Field(ge=0, le=MAX_NOISE_MM, allow_inf_nan=False)] | Literal["auto"]
     ) = Field(

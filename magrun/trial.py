@@ -59,7 +59,7 @@ from magrun.protocol import (
 )
 from magrun.records import Tick
 from magrun.rigs.plant import ImperfectTracker
-from magrun.robot import RobotParams
+from magrun.robot import RobotParams, load_robot
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
 from magrun.tracking.fluoroscopy import FluoroscopyMimic
@@ -525,6 +525,71 @@ def strong_tracking(settings: ControllerSettings, held: bool) -> tuple[bool, flo
     return (k.linearised or held), weakening
 
 
+def two_layer_tuning(
+    config: ControlConfig, settings: ControllerSettings, coils: CoilSystem, robot: RobotParams
+) -> ControlConfig:
+    """The two-layer baselines' wrench for this robot and system (``auto``; docs/control.md,
+    "The baselines' wrench"): the paper rig's values were set for its magnet robot, as a
+    speed and a turn rate (0.4 mN over its drag along the axis, 11 mm/s; 4 µN m over its
+    rotational drag, 1.9 rad/s). Another robot gets the force and torque that move it so: the
+    linear MPC's wrench units scale by its drags over the magnet robot's (the same
+    closed-loop speeds, whatever it weighs). The allocation's force and torque references
+    scale by its moment over the magnet robot's: both are the moment times a gradient or a
+    field, so the allocation trades the same fields and gradients against its row for the
+    field along the axis and its currents for any robot. The linear MPC's limits
+    are those units, or less where the coils give the robot less (its
+    :func:`typical_wrench`): it then plans only what the allocation can deliver. On the paper
+    rig with the magnet robot every value is the hand-set one, to the last digit. A number
+    for ``wrench_scale`` multiplies the paper rig's values instead, for any robot."""
+    mpc, allocation = config.linear_mpc, config.allocation
+    if settings.wrench_scale != "auto":
+        force = torque = moment = float(settings.wrench_scale)
+        box_force, box_torque = mpc.force_unit * force, mpc.torque_unit * torque
+    else:
+        magnet = load_robot(PAPER_ROBOT)
+        force = robot.drag_parallel / magnet.drag_parallel
+        torque = robot.drag_rotation / magnet.drag_rotation
+        moment = robot.moment / magnet.moment
+        typical_force, typical_torque = typical_wrench(coils, robot)
+        box_force = min(mpc.force_unit * force, typical_force or math.inf)
+        box_torque = min(mpc.torque_unit * torque, typical_torque)
+    return replace(
+        config,
+        linear_mpc=replace(
+            mpc, force_unit=mpc.force_unit * force, torque_unit=mpc.torque_unit * torque,
+            max_force=box_force, max_torque=box_torque,
+        ),
+        allocation=replace(
+            allocation, force_ref=allocation.force_ref * moment,
+            torque_ref=allocation.torque_ref * moment,
+        ),
+    )  # fmt: skip
+
+
+#: the robot the paper rig's two-layer wrench values were set for (:func:`two_layer_tuning`)
+PAPER_ROBOT = "magnet"
+#: typical_wrench's answers in this process, by system, limits and robot
+_WRENCH: dict[tuple[Any, ...], tuple[float, float]] = {}
+
+
+def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]:
+    """The force (N) and torque (N m) ``coils`` typically give ``robot`` at their limits over
+    their workspace: :attr:`~magrun.field.capability.WorkspaceCapability.typical_force`, and
+    the robot's moment times :attr:`~magrun.field.capability.WorkspaceCapability.
+    typical_field` (:func:`~magrun.field.capability.workspace_capability` on the system's
+    lookup-table model; ~2 s, remembered in the process)."""
+    from magrun.field.capability import workspace_capability
+
+    key = (coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot))
+    if key not in _WRENCH:
+        model = system_models(coils.folder)[1]
+        cap = workspace_capability(
+            model, robot, coils.max_current, model.coils.workspace_half_width
+        )
+        _WRENCH[key] = (cap.typical_force, cap.typical_field * robot.moment)
+    return _WRENCH[key]
+
+
 def planned_reference(
     coils: CoilSystem, reference: Trajectory, robot: RobotParams
 ) -> tuple[Trajectory, float]:
@@ -636,6 +701,8 @@ def build_controller(
             ),
             kalman=replace(config.kalman, strong_tracking=fading, weakening=weakening),
         )  # fmt: skip
+    else:
+        config = two_layer_tuning(config, protocol.controller, coils, robot)
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

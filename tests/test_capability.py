@@ -26,6 +26,7 @@ from magrun.field.capability import (
     HELD_SAMPLES,
     HELD_SPARE,
     Site,
+    WorkspaceCapability,
     _sites,
     held_reference,
     pose_capability,
@@ -414,3 +415,108 @@ def test_a_protocols_filter_choice_reaches_the_filter(linearised: bool) -> None:
     config = control_config(protocol.controller, protocol.robot_params(), trial.condition)
     assert config.kalman.linearised is linearised
     assert KalmanPoseFilter(config.kalman).uses_jacobian is linearised
+
+
+def test_the_typical_force_is_the_median_over_the_poses_that_move() -> None:
+    """Speeds by hand: NaN (heading not held) and 0 (held, cannot move) poses are left out
+    of the median force; the field's median is over positions."""
+    speed = np.array([[[math.nan, 0.0], [1.0, 2.0]], [[3.0, 5.0], [0.0, math.nan]]])
+    field = np.array([[1e-3, 2e-3], [4e-3, 8e-3]])
+    axis = np.array([-1e-3, 1e-3])
+    cap = WorkspaceCapability(axis, axis, np.array([0.0, math.pi]), speed, field, 0.5, 1e-3)
+    assert cap.typical_force == pytest.approx(0.5 * 2.5)  # median of 1, 2, 3, 5 m/s × 0.5 N s/m
+    assert cap.typical_field == pytest.approx(3e-3)
+    none = WorkspaceCapability(
+        axis, axis, np.array([0.0, math.pi]), np.zeros_like(speed), field, 0.5, 1e-3
+    )
+    assert none.typical_force == 0.0
+
+
+def test_the_coils_typical_wrench_is_homogeneous_in_the_limits() -> None:
+    """With no field asked along the moment (B_min = 0) every constraint of the capability's
+    linear program is homogeneous in the currents (the paper rig has no background): at twice
+    the limits each pose's force and each position's largest field are exactly twice."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+    from typing import cast
+
+    from magrun.trial import typical_wrench
+
+    robot = replace(load_robot("magnet"), min_aligned_field=0.0)
+    paper = system_models(None)[1].coils
+    stronger = cast(CoilSystem, SimpleNamespace(folder=None, max_current=2 * paper.max_current))
+    force, torque = typical_wrench(paper, robot)
+    assert force > 0
+    assert torque > 0
+    assert_allclose(typical_wrench(stronger, robot), (2 * force, 2 * torque), rtol=1e-4)
+
+
+def test_the_baselines_wrench_follows_the_robots_drag_within_the_coils_reach() -> None:
+    """By hand: the paper rig's values for its magnet robot, to the last digit; for another
+    robot, the linear MPC's units times its drags over the magnet robot's and the
+    allocation's references times its moment over the magnet robot's; on coils too weak
+    for those, the linear MPC's limits are what they typically give; a number multiplies
+    the paper rig's values for any robot."""
+    from types import SimpleNamespace
+    from typing import cast
+
+    from magrun.control.methods import ControlConfig
+    from magrun.protocol import ControllerSettings
+    from magrun.trial import two_layer_tuning, typical_wrench
+
+    auto, base = ControllerSettings(), ControlConfig()
+    mpc, alloc = base.linear_mpc, base.allocation
+    paper = system_models(None)[1].coils
+    magnet = load_robot("magnet")
+    assert two_layer_tuning(base, auto, paper, magnet) == base
+
+    f = ROBOT.drag_parallel / magnet.drag_parallel
+    t = ROBOT.drag_rotation / magnet.drag_rotation
+    tuned = two_layer_tuning(base, auto, paper, ROBOT)
+    assert tuned.linear_mpc.force_unit == pytest.approx(4e-4 * f, rel=1e-12)
+    assert tuned.linear_mpc.torque_unit == pytest.approx(4e-6 * t, rel=1e-12)
+    assert (tuned.linear_mpc.max_force, tuned.linear_mpc.max_torque) == (
+        tuned.linear_mpc.force_unit, tuned.linear_mpc.torque_unit,
+    )  # fmt: skip
+    m = ROBOT.moment / magnet.moment
+    assert tuned.allocation.force_ref == pytest.approx(1e-5 * m, rel=1e-12)
+    assert tuned.allocation.torque_ref == pytest.approx(1e-7 * m, rel=1e-12)
+    assert tuned.allocation.align_field == alloc.align_field
+
+    weak = cast(CoilSystem, SimpleNamespace(folder=None, max_current=0.2 * paper.max_current))
+    force, _ = typical_wrench(weak, magnet)
+    assert 0 < force < mpc.max_force  # at 6 A the paper rig gives the magnet robot less
+    limited = two_layer_tuning(base, auto, weak, magnet)
+    assert limited.linear_mpc.max_force == force
+    assert limited.linear_mpc.force_unit == mpc.force_unit  # what a newton costs is the robot's
+
+    given = two_layer_tuning(base, ControllerSettings(wrench_scale=0.5), paper, ROBOT)
+    assert given.linear_mpc.max_force == pytest.approx(0.5 * mpc.max_force, rel=1e-12)
+    assert given.allocation.torque_ref == pytest.approx(0.5 * alloc.torque_ref, rel=1e-12)
+
+
+@pytest.mark.parametrize(("scale", "factor"), [("auto", 1.0), (3.0, 3.0)])
+def test_a_baseline_is_built_with_the_scaled_wrench(scale: Any, factor: float) -> None:
+    """The protocol's ``wrench_scale`` (``auto``: the hand-set values on the paper rig with
+    its magnet robot) reaches Baseline 3's linear MPC and its allocation."""
+    from magrun.control.allocation import AllocationConfig
+    from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner
+    from magrun.protocol import Protocol
+    from magrun.trial import build_controller
+
+    protocol = Protocol.model_validate(
+        {
+            "name": "w", "description": "wrench", "robot": "magnet", "workspace": {"kind": "open"},
+            "trajectory": {"kind": "s_curve"}, "methods": ["baseline3"], "trials": 1,
+            "controller": {"wrench_scale": scale},
+        }
+    )  # fmt: skip
+    (trial,) = protocol.expand()
+    planner = build_controller(trial).controller.planner
+    assert isinstance(planner, LinearMPCPlanner)
+    mpc, alloc = LinearMPCConfig(), AllocationConfig()
+    assert planner.config.max_force == factor * mpc.max_force
+    assert planner.config.max_torque == factor * mpc.max_torque
+    assert planner.config.force_unit == factor * mpc.force_unit
+    assert planner.allocation.force_ref == factor * alloc.force_ref
+    assert planner.allocation.torque_ref == factor * alloc.torque_ref

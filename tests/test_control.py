@@ -412,3 +412,31 @@ def test_a_linearised_filter_gets_the_prediction_jacobian_across_the_latency(
         c.replay_step(None, np.zeros(3))
         F = expected if linearised else I3
         assert_allclose(kf.covariance, F @ P @ F.T + kf.Q, rtol=1e-7)
+
+
+def test_the_linear_mpcs_limits_bound_the_wrench_without_changing_its_cost(
+    lut_model, magnet_robot
+) -> None:
+    """The wrench weights are per the paper rig's limits (``force_unit``, ``torque_unit``),
+    whatever a system's limits are: near the reference, where the wrench is within the
+    paper rig's box, ten times wider limits give the same wrench (to rounding); 20 mm off,
+    the paper rig's box clips the force to 0.4 mN and the wider one lets it grow past that,
+    within its own limit."""
+    from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner
+
+    paper = LinearMPCConfig()
+    wide = replace(paper, max_force=10 * paper.max_force, max_torque=10 * paper.max_torque)
+    reference = s_trajectory()
+    window = reference.pose(np.arange(21) / 25.5)  # (N + 1, 3): the reference ahead
+    near = np.concatenate([window[0] + [0.05e-3, -0.03e-3, 0.01], np.zeros(3)])
+    far = np.concatenate([window[0] + [20e-3, 0.0, 0.0], np.zeros(3)])
+    wrenches = {}
+    for name, config in (("paper", paper), ("wide", wide)):
+        planner = LinearMPCPlanner(lut_model, magnet_robot, 1 / 25.5, config)
+        wrenches[name, "near"] = planner.desired_wrench(near, window)
+        planner.reset()
+        wrenches[name, "far"] = planner.desired_wrench(far, window)
+    assert np.all(np.abs(wrenches["paper", "near"][:2]) < 0.9 * paper.max_force)
+    assert_allclose(wrenches["wide", "near"], wrenches["paper", "near"], rtol=1e-6, atol=1e-12)
+    assert abs(wrenches["paper", "far"][0]) == pytest.approx(paper.max_force, rel=1e-6)
+    assert paper.max_force * 1.5 < abs(wrenches["wide", "far"][0]) <= wide.max_force * (1 + 1e-9)

@@ -23,6 +23,7 @@ from functools import cache
 from numpy.typing import ArrayLike
 
 from magrun.control import METHODS, NMPC_METHODS
+from magrun.control.allocation import AllocationConfig
 from magrun.control.base import Controller, Estimator, Planner
 from magrun.control.estimation import (
     HoldLastMeasurement,
@@ -48,6 +49,7 @@ class ControlConfig:
     kalman: KalmanConfig = field(default_factory=KalmanConfig)
     pid: PIDConfig = field(default_factory=PIDConfig)
     linear_mpc: LinearMPCConfig = field(default_factory=LinearMPCConfig)
+    allocation: AllocationConfig = field(default_factory=AllocationConfig)
     #: expected time, s, from a tick's observation to its currents reaching the coils: the
     #: controller plans across it (:class:`~magrun.control.base.Controller`)
     latency: float = 0.0
@@ -105,11 +107,11 @@ def make_controller(
             MeasurementOrPrediction() if method == "baseline1" else KalmanPoseFilter(cfg.kalman)
         )
     elif method == "baseline2":
-        planner = PIDPlanner(lut, params, cfg.dt, cfg.pid)
+        planner = PIDPlanner(lut, params, cfg.dt, cfg.pid, cfg.allocation)
         estimator = HoldLastMeasurement()
     else:
         model = lut if method == "baseline3" else zernike
-        planner = LinearMPCPlanner(model, params, cfg.dt, cfg.linear_mpc)
+        planner = LinearMPCPlanner(model, params, cfg.dt, cfg.linear_mpc, cfg.allocation)
         estimator = MeasurementOrPrediction()
     coils = zernike.coils
     filtered = isinstance(estimator, KalmanPoseFilter)

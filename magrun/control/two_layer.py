@@ -221,8 +221,12 @@ class LinearMPCConfig:
     max_torque: float = 4e-6  # N m
     q_position: float = 10.0  # per mm²
     q_angle: float = 100.0  # per rad²
-    r_wrench: float = 1.0  # per (wrench / limit)²
-    s_wrench_change: float = 0.5
+    r_wrench: float = 1.0  # per (wrench / unit)²
+    s_wrench_change: float = 0.5  # per (wrench change / unit)²
+    #: the force (N) and torque (N m) the wrench weights are per: the paper rig's limits, so
+    #: that a system's limits bound the wrench without changing what it costs
+    force_unit: float = 4e-4
+    torque_unit: float = 4e-6
 
 
 class LinearMPCPlanner(TwoLayerPlanner):
@@ -254,7 +258,10 @@ class LinearMPCPlanner(TwoLayerPlanner):
                 np.sqrt(cfg.s_wrench_change) * diff,
             ]
         )
-        self._limit = np.array([cfg.max_force, cfg.max_force, cfg.max_torque])
+        self._unit = np.array([cfg.force_unit, cfg.force_unit, cfg.torque_unit])
+        self._box = np.tile(
+            np.array([cfg.max_force, cfg.max_force, cfg.max_torque]) / self._unit, N
+        )
         self._solve = BoxLeastSquares(3 * N)
         self.reset()
 
@@ -264,8 +271,8 @@ class LinearMPCPlanner(TwoLayerPlanner):
     def desired_wrench(self, state: FloatArray, reference: FloatArray) -> FloatArray:
         cfg, N = self.config, self.config.horizon
         Ad, Bd = linear_model(self.robot, float(state[2]), self.dt)
-        limit = self._limit
-        Bn = Bd * limit  # inputs normalised by their limits
+        unit = self._unit
+        Bn = Bd * unit  # inputs in units of the weights
         # condensed prediction of the poses (rows 0:3 of the state), k = 1 … N:
         # X_k = Ad^k x0 + Σ_{j<k} Ad^(k−1−j) Bn u_j
         blocks = np.zeros((N + 1, 3, 3))  # Ad^i Bn, pose rows, i = 0 … N−1; block N is 0
@@ -287,7 +294,7 @@ class LinearMPCPlanner(TwoLayerPlanner):
         M[: 3 * N] = Wq[:, None] * Phi
         rhs = np.zeros(3 * 3 * N)
         rhs[: 3 * N] = Wq * (ref - free).ravel()
-        rhs[6 * N : 6 * N + 3] = np.sqrt(cfg.s_wrench_change) * self._last_wrench / limit
-        wrench = self._solve(M, rhs, -1.0, 1.0)[:3] * limit
+        rhs[6 * N : 6 * N + 3] = np.sqrt(cfg.s_wrench_change) * self._last_wrench / unit
+        wrench = self._solve(M, rhs, -self._box, self._box)[:3] * unit
         self._last_wrench = wrench
         return wrench

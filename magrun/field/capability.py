@@ -200,6 +200,21 @@ class WorkspaceCapability:
         """The largest torque on the robot, N m, (ny, nx): its moment in the largest field."""
         return self.field * self.moment
 
+    @property
+    def typical_force(self) -> float:
+        """The median force along the heading, N, over the poses whose heading the coils can
+        hold and move along it (the force such a robot typically gets); 0 where none. A pose
+        "moves" where its force exceeds a millionth of the largest (a linear program's
+        rounding is not a force)."""
+        force = np.where(np.isfinite(self.force), self.force, 0.0)
+        moving = force[force > 1e-6 * force.max()] if force.size else force
+        return float(np.median(moving)) if moving.size else 0.0
+
+    @property
+    def typical_field(self) -> float:
+        """The median over positions of the largest field the coils make, T."""
+        return float(np.median(self.field))
+
     def summary(self) -> dict[str, Any]:
         """The figures ``magrun field check`` prints (SI in, the units named in the keys)."""
         held = np.isfinite(self.speed)
