@@ -309,6 +309,16 @@ class ControllerSettings(_Strict):
             ),
         )
     )
+    angle_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
+        Field(
+            "auto",
+            description=(
+                "A factor on the NMPC's heading-error weights; 'auto': 1 where the planner "
+                "follows the reference's own headings, 0.01 where it follows headings the "
+                "coils can hold (headings of the planner's choosing, not the task's)."
+            ),
+        )
+    )
     wrench_scale: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
         Field(
             "auto",
