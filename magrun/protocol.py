@@ -80,6 +80,8 @@ MAX_NOISE_DEG = 360.0
 Rate = Annotated[float, Field(gt=0, le=MAX_RATE_HZ, allow_inf_nan=False)]
 NoiseMm = Annotated[float, Field(ge=0, le=MAX_NOISE_MM, allow_inf_nan=False)]
 NoiseDeg = Annotated[float, Field(ge=0, le=MAX_NOISE_DEG, allow_inf_nan=False)]
+#: a factor on a derived tuning value, or "auto" (derived from the system, robot and task)
+AutoFactor = Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"]
 
 
 class Conditions(_Strict):
@@ -299,36 +301,30 @@ class ControllerSettings(_Strict):
             ),
         )
     )
-    current_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
-        Field(
-            "auto",
-            description=(
-                "A factor on the NMPC's current and current-change weights; 'auto': 1 on a "
-                "system about as strong for the task as the paper's rig, (f/8.2)^2 where the "
-                "coils give the reference's velocity f > 8.2 times over (median)."
-            ),
-        )
+    current_weight: AutoFactor = Field(
+        "auto",
+        description=(
+            "A factor on the NMPC's current and current-change weights; 'auto': 1 on a "
+            "system about as strong for the task as the paper's rig, (f/8.2)^2 where the "
+            "coils give the reference's velocity f > 8.2 times over (median)."
+        ),
     )
-    angle_weight: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
-        Field(
-            "auto",
-            description=(
-                "A factor on the NMPC's heading-error weights; 'auto': 1 where the planner "
-                "follows the reference's own headings, 0.01 where it follows headings the "
-                "coils can hold (headings of the planner's choosing, not the task's)."
-            ),
-        )
+    angle_weight: AutoFactor = Field(
+        "auto",
+        description=(
+            "A factor on the NMPC's heading-error weights; 'auto': 1 where the planner "
+            "follows the reference's own headings, 0.01 where it follows headings the "
+            "coils can hold (headings of the planner's choosing, not the task's)."
+        ),
     )
-    wrench_scale: Annotated[float, Field(gt=0, le=1e6, allow_inf_nan=False)] | Literal["auto"] = (
-        Field(
-            "auto",
-            description=(
-                "A factor on the two-layer baselines' (2 to 4) wrench: the paper rig's force "
-                "and torque limits and allocation references, set for its magnet robot; "
-                "'auto': scaled by the robot's drags over the magnet robot's, the limits "
-                "kept within what the coils typically give the robot."
-            ),
-        )
+    wrench_scale: AutoFactor = Field(
+        "auto",
+        description=(
+            "A factor on the two-layer baselines' (2 to 4) wrench: the paper rig's force "
+            "and torque limits and allocation references, set for its magnet robot; "
+            "'auto': scaled by the robot's drags over the magnet robot's, the limits "
+            "kept within what the coils typically give the robot."
+        ),
     )
     position_uncertainty_mm: (
         Annotated[float, Field(ge=0, le=MAX_NOISE_MM, allow_inf_nan=False)] | Literal["auto"]

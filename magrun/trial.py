@@ -430,16 +430,16 @@ INTEGRAL_TIME = 0.1
 
 
 def _remembered(
-    cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory,
+    cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory | None,
     robot: RobotParams, compute: Callable[[PlanarFieldModel], Any],
 ) -> Any:  # fmt: skip
     """``compute(the system's lookup-table model)``, remembered in ``cache`` (at most 32) by
-    system, limits, robot and trajectory: a test session or a campaign runs the same
-    protocol many times, and each answer costs hundreds of linear programs."""
-    key = (
-        coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot),
-        reference.t.tobytes(), reference.poses.tobytes(),
-    )  # fmt: skip
+    system, limits, robot and trajectory (None: an answer for the whole workspace): a test
+    session or a campaign runs the same protocol many times, and each answer costs hundreds
+    of linear programs."""
+    key = (coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot)) + (
+        () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
+    )
     if key not in cache:
         if len(cache) >= 32:
             cache.clear()
@@ -526,11 +526,10 @@ def strong_tracking(settings: ControllerSettings, held: bool) -> tuple[bool, flo
     β = :data:`GUARD_WEAKENING`: inert while the innovations agree with the filter (114 of 116
     closed-loop trials on four systems the same to the last digit), it brought the two
     replayed ``three`` recordings where the filter diverged back (5.9 → 2.4 mm, 5.0 → 2.5 mm
-    RMS). With the paper's filter (F = I) it is on
-    where the planner follows held headings, β = 1.5: on ``three`` (docs/systems.md) at 3 Hz
-    with σ = 2 mm that filter lost the robot in 6 of 6 trials without it and in none with
-    it; on OctoMag and MiniMag, whose model the filter can trust, it cost 5–20 % (8
-    trials)."""
+    RMS). With the paper's filter (F = I) it is on where the planner follows held headings,
+    β = 1.5: on ``three`` (docs/systems.md) at 3 Hz with σ = 2 mm that filter lost the robot
+    in 6 of 6 trials without it and in none with it; on OctoMag and MiniMag, whose model the
+    filter can trust, it cost 5–20 % (8 trials)."""
     k = settings.kalman
     weakening = GUARD_WEAKENING if k.linearised else KalmanConfig.weakening
     if k.strong_tracking != "auto":
@@ -581,8 +580,8 @@ def two_layer_tuning(
 
 #: the robot the paper rig's two-layer wrench values were set for (:func:`two_layer_tuning`)
 PAPER_ROBOT = "magnet"
-#: typical_wrench's answers in this process, by system, limits and robot
-_WRENCH: dict[tuple[Any, ...], tuple[float, float]] = {}
+#: typical_wrench's answers in this process (_remembered)
+_WRENCH: dict[tuple[Any, ...], Any] = {}
 
 
 def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]:
@@ -593,14 +592,13 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
     lookup-table model; ~2 s, remembered in the process)."""
     from magrun.field.capability import workspace_capability
 
-    key = (coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot))
-    if key not in _WRENCH:
-        model = system_models(coils.folder)[1]
+    def compute(model: PlanarFieldModel) -> tuple[float, float]:
         cap = workspace_capability(
             model, robot, coils.max_current, model.coils.workspace_half_width
         )
-        _WRENCH[key] = (cap.typical_force, cap.typical_field * robot.moment)
-    return _WRENCH[key]
+        return cap.typical_force, cap.typical_field * robot.moment
+
+    return _remembered(_WRENCH, coils, None, robot, compute)
 
 
 def planned_reference(

@@ -259,9 +259,8 @@ class LinearMPCPlanner(TwoLayerPlanner):
             ]
         )
         self._unit = np.array([cfg.force_unit, cfg.force_unit, cfg.torque_unit])
-        self._box = np.tile(
-            np.array([cfg.max_force, cfg.max_force, cfg.max_torque]) / self._unit, N
-        )
+        box = np.tile(np.array([cfg.max_force, cfg.max_force, cfg.max_torque]) / self._unit, N)
+        self._lower, self._upper = -box, box  # the limits in units
         self._solve = BoxLeastSquares(3 * N)
         self.reset()
 
@@ -295,6 +294,6 @@ class LinearMPCPlanner(TwoLayerPlanner):
         rhs = np.zeros(3 * 3 * N)
         rhs[: 3 * N] = Wq * (ref - free).ravel()
         rhs[6 * N : 6 * N + 3] = np.sqrt(cfg.s_wrench_change) * self._last_wrench / unit
-        wrench = self._solve(M, rhs, -self._box, self._box)[:3] * unit
+        wrench = self._solve(M, rhs, self._lower, self._upper)[:3] * unit
         self._last_wrench = wrench
         return wrench
