@@ -38,13 +38,7 @@ from magrun.field.mpem import import_mpem
 from magrun.protocol import load_protocol
 from magrun.robot import drag_matrix, load_robot, magnetic_wrench
 from magrun.scene import s_trajectory
-from magrun.trial import (
-    HELD_ANGLE_WEIGHT,
-    PAPER_SPEED_FACTOR,
-    RunError,
-    check_system,
-    system_models,
-)
+from magrun.trial import PAPER_SPEED_FACTOR, RunError, check_system, system_models
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = load_robot("micro_magnet")
@@ -263,18 +257,14 @@ def test_the_nmpc_weighs_currents_by_what_the_task_needs() -> None:
     assert strong.r_current == pytest.approx(4 * base.r_current)
     assert strong.s_current_change == pytest.approx(4 * base.s_current_change)
     assert strong.step_damping == 1.0
-    # where the headings are held, they are the planner's, not the task's: weighed lightly
-    assert strong.q_angle == pytest.approx(HELD_ANGLE_WEIGHT * base.q_angle)
-    assert strong.q_angle_terminal == pytest.approx(HELD_ANGLE_WEIGHT * base.q_angle_terminal)
     paper = nmpc_tuning(base, auto, False, 0.7 * PAPER_SPEED_FACTOR)
-    assert (paper.r_current, paper.s_current_change, paper.step_damping, paper.q_angle) == (
-        base.r_current, base.s_current_change, 0.0, base.q_angle,
+    assert (paper.r_current, paper.s_current_change, paper.step_damping) == (
+        base.r_current, base.s_current_change, 0.0,
     )  # fmt: skip
     assert nmpc_tuning(base, auto, False, math.nan).r_current == base.r_current
-    given = ControllerSettings(step_damping=0.25, current_weight=3.0, angle_weight=0.5)
+    given = ControllerSettings(step_damping=0.25, current_weight=3.0)
     tuned = nmpc_tuning(base, given, True, 10 * PAPER_SPEED_FACTOR)
     assert tuned.step_damping == 0.25
-    assert tuned.q_angle == pytest.approx(0.5 * base.q_angle)
     assert tuned.r_current == pytest.approx(3 * base.r_current)
 
 
