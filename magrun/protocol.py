@@ -309,6 +309,14 @@ class ControllerSettings(_Strict):
             "coils give the reference's velocity f > 8.2 times over (median)."
         ),
     )
+    angle_weight: AutoFactor = Field(
+        "auto",
+        description=(
+            "A factor on the NMPC's heading-error weights; 'auto': 1 where the planner "
+            "follows the reference's own headings, 0.01 where it follows headings the "
+            "coils can hold (headings of the planner's choosing, not the task's)."
+        ),
+    )
     wrench_scale: AutoFactor = Field(
         "auto",
         description=(

@@ -393,6 +393,15 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     return coils
 
 
+#: the factor on the NMPC's heading-error weights where the planner follows held headings
+#: (``angle_weight: auto``): there the planned heading is one the coils can hold, chosen by
+#: the planner, not the task's, and tracking it costs the path. With exact feedback at
+#: 25.5 Hz (3 trials) the proposed method's RMS on ``tri`` was 0.41 mm at 1, 0.26 at 0.1,
+#: 0.19 at 0.03 and 0.063 mm at 0.01 (``three``: 0.20, 0.13, 0.13, 0.096 mm); the heading's
+#: RMS off the S's own went from 17° to 22° on ``tri`` and from 15° to 62° on ``three``
+#: (docs/systems.md). So light, the heading lets plain Gauss–Newton steps diverge: the NMPC's
+#: steps are checked there (``step_check``; :mod:`magrun.control.nmpc`, "Checked steps")
+HELD_ANGLE_WEIGHT = 0.01
 #: the NMPC's step damping where the planner's headings leave the reference's (``auto``), per
 #: (I / I_max)²: the paper rig's current weight R
 HELD_DAMPING = 1.0
@@ -442,17 +451,22 @@ def _remembered(
 def nmpc_tuning(
     nmpc: NMPCConfig, settings: ControllerSettings, held: bool, factor: float
 ) -> NMPCConfig:
-    """The NMPC's step damping and current weights for a system and task (module doc of
-    :mod:`magrun.control.nmpc`: step damping, and the weights): ``held``, whether the planner
-    follows held headings instead of the reference's; ``factor``, how many times over the
-    coils give the reference's velocity (median)."""
+    """The NMPC's step damping, current weights and heading weights for a system and task
+    (module doc of :mod:`magrun.control.nmpc`: step damping, and the weights): ``held``,
+    whether the planner follows held headings instead of the reference's (then the heading
+    weights are :data:`HELD_ANGLE_WEIGHT` of the paper's, and its steps are checked);
+    ``factor``, how many times over the coils give the reference's velocity (median)."""
     damping = settings.step_damping
     if damping == "auto":
         damping = HELD_DAMPING if held else 0.0
     weight = current_weight(settings, factor)
+    angle = settings.angle_weight
+    if angle == "auto":
+        angle = HELD_ANGLE_WEIGHT if held else 1.0
     return replace(
-        nmpc, step_damping=float(damping), r_current=nmpc.r_current * weight,
-        s_current_change=nmpc.s_current_change * weight,
+        nmpc, step_damping=float(damping), step_check=held, r_current=nmpc.r_current * weight,
+        s_current_change=nmpc.s_current_change * weight, q_angle=nmpc.q_angle * angle,
+        q_angle_terminal=nmpc.q_angle_terminal * angle,
     )  # fmt: skip
 
 

@@ -233,6 +233,91 @@ def test_step_damping_shortens_the_steps_not_the_optimum(zernike_model, magnet_r
     assert firsts[1] < 0.9 * firsts[0]
 
 
+def test_the_objective_sums_the_residuals_over_the_simulated_plan(
+    zernike_model, magnet_robot, rng
+) -> None:
+    """OCP.objective (one CasADi function, the checked steps' merit) against the stage and
+    terminal residuals summed in a Python loop over states stepped one by one, for random
+    currents on a problem whose heading term is active: equal to rounding."""
+    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=False))
+    ocp = nmpc.problem
+    state, ref, previous = _problem("wall")
+    x0, u_prev, par = nmpc._start(state, ref, previous)
+    X, before, J = x0 / STATE_SCALE, u_prev, 0.0
+    for _ in range(3):
+        u = rng.uniform(-0.5, 0.5, (ocp.N, ocp.nu))
+        X, before, J = x0 / STATE_SCALE, u_prev, 0.0
+        for k in range(ocp.N):
+            if k > 0:
+                J += float(ca.sumsqr(ocp.pose_residual["stage"](X, par[:, k])))
+            J += float(ca.sumsqr(ocp.heading(X, u[k]))) + float(ca.sumsqr(ocp.uncertainty(X, u[k])))
+            J += ocp.config.r_current * float(np.sum(u[k] ** 2))
+            J += ocp.config.s_current_change * float(np.sum((u[k] - before) ** 2))
+            X, before = np.asarray(ocp.step_scaled(X, u[k])).ravel(), u[k]
+        J += float(ca.sumsqr(ocp.pose_residual["terminal"](X, par[:, ocp.N])))
+        assert ocp.cost(x0 / STATE_SCALE, u_prev, par, u) == pytest.approx(J, rel=1e-12)
+
+
+def test_a_checked_descent_converges_where_full_gauss_newton_steps_diverge() -> None:
+    """descend() on r(x) = atan(x), the textbook case: the Gauss-Newton step -r/r' =
+    -atan(x)(1 + x²) overshoots from |x| > 1.39 and its iterates grow without bound (from 2:
+    -3.54, 13.95, ...). Checked, the first full step is taken back (the iterate restored to
+    2), and the iterate reaches the minimum, 0, to 1e-8."""
+    from magrun.control.nmpc import descend
+
+    def gauss_newton(x: float, mu: float) -> float:
+        slope = 1.0 / (1.0 + x * x)
+        return -slope * math.atan(x) / (slope * slope + mu)
+
+    x = 2.0
+    for _ in range(3):
+        x += gauss_newton(x, 0.0)
+    assert abs(x) > 100  # full steps diverge
+
+    plan = {"S": np.zeros((1, 1)), "V": np.array([[2.0]])}  # the plan's V holds x
+    restored: list[float] = []
+
+    def objective(V: np.ndarray) -> float:
+        return math.atan(float(V[0, 0])) ** 2
+
+    def iterate() -> tuple[np.ndarray, np.ndarray]:
+        return plan["S"].copy(), plan["V"].copy()
+
+    def restore(S: np.ndarray, V: np.ndarray) -> None:
+        restored.append(float(V[0, 0]))
+        plan["S"], plan["V"] = S.copy(), V.copy()
+
+    def step(mu: float) -> tuple[str, float]:
+        dx = gauss_newton(float(plan["V"][0, 0]), mu)
+        plan["V"] = plan["V"] + dx
+        return "", abs(dx)
+
+    cfg = NMPCConfig(first_tick_iterations=200, step_tolerance=1e-12)
+    iterations, back, kept, error = descend(objective, iterate, restore, step, cfg)
+    assert error == ""
+    assert kept > 0
+    assert restored[0] == 2.0
+    assert back == len(restored) > 0
+    assert abs(float(plan["V"][0, 0])) < 1e-8
+    assert iterations < 200
+
+
+@pytest.mark.parametrize("qp", ["direct", "casadi"])
+def test_checked_steps_reach_the_ipopt_optimum(zernike_model, magnet_robot, qp: str) -> None:
+    """Checking each step against the objective leaves the iteration's fixed point where it
+    is: iterated from rest, the checked RTI reaches IPOPT's optimum of the tracking problem
+    within 1e-4 of the limit, through either QP."""
+    _, u_ipopt = _ipopt(zernike_model, magnet_robot, "track")
+    state, ref, previous = _problem("track")
+    cfg = NMPCConfig(step_check=True, rti_qp=qp, first_tick_iterations=3000,
+                     step_tolerance=1e-10)  # fmt: skip
+    nmpc = NMPC(zernike_model, magnet_robot, cfg)
+    assert nmpc.plan(state, ref, previous).status.success
+    u = nmpc.backend.currents_plan()
+    assert u is not None
+    assert_allclose(u, u_ipopt, atol=1e-4)
+
+
 def test_step_damping_must_be_a_number_at_least_zero(zernike_model, magnet_robot) -> None:
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match="step_damping"):
@@ -565,6 +650,37 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
         X = nmpc.backend.states_plan()
         assert X is not None
         assert np.all(np.abs(X[:, :2] * 1e-3) <= bound + 1e-9)
+
+
+def test_a_failed_start_moving_past_the_bound_is_planned_from_rest(zernike_model, magnet_robot):
+    """A tick whose QP fails from an estimate inside the bound but moving toward it fast
+    enough to cross it within the horizon (1.5 mm inside at 40 mm/s: past it in 0.04 s) is
+    solved again from the same pose at rest; one moving as fast away from the bound, whose
+    failure the bound cannot explain, is not (its failure stands). Here the first solve of
+    each tick is made to fail; the retry's start is checked."""
+    from magrun.control.nmpc import SolveResult
+
+    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig())
+    bound = nmpc.position_bound
+    ref = np.tile([bound - 5e-3, 0.0, 0.0], (21, 1))
+    for velocity, retried in ((0.04, True), (-0.04, False)):
+        nmpc.reset()
+        start = np.array([bound - 1.5e-3, 0.0, 0.3, velocity, 0.0, 0.0])
+        solve, starts = nmpc.backend.solve, []
+
+        def failing_first(x0, u_prev, par, solve=solve, starts=starts):
+            starts.append(np.array(x0) * STATE_SCALE)
+            if len(starts) == 1:
+                return SolveResult(False, np.zeros(8), 1, "made to fail")
+            return solve(x0, u_prev, par)
+
+        nmpc.backend.solve = failing_first  # type: ignore[method-assign]
+        plan = nmpc.plan(start, ref, np.zeros(8))
+        assert plan.status.success is retried, velocity
+        assert len(starts) == (2 if retried else 1)
+        if retried:
+            assert_allclose(starts[1][:3], start[:3])
+            assert_allclose(starts[1][3:], 0.0)
 
 
 def test_position_uncertainty_residuals_against_finite_differences(

@@ -170,6 +170,29 @@ proposed method lost the robot in every seed, its QPs failing from there on; wit
 the held headings it tracked in all six. A protocol's ``controller.step_damping: auto`` gives
 μ = 1 exactly there and 0 elsewhere (the paper rig's and OctoMag's trials are unchanged).
 
+Checked steps. Gauss–Newton steps are not checked against anything, and a full step can raise
+the objective it is meant to lower. Where the heading weights are light (held headings: the
+paper's qθ × 0.01, :func:`magrun.trial.nmpc_tuning`) the heading swings freely and the force
+with it, and plain steps diverged: on ``tri``, from a start turned 2 rad off the direction of
+travel, the first tick's iterates ran to the position bound at 100–200 mm/s until HPIPM stopped
+at its minimum step; forced through, the real-time ticks that followed drove the robot at
+50 mm/s. With ``step_check`` each step is measured by the objective of its plan's currents
+(:attr:`OCP.objective`: the states simulated from the start, held within the position bound).
+The first tick keeps a step only where that falls, else takes it back and raises the step
+damping tenfold (from max(10 μ, 1), at most 5 times) until one does, lowering it again after
+each kept step: a Levenberg–Marquardt descent (:func:`descend`). A real-time tick's one step is
+taken back where it more than doubles the objective of the plan it started from
+(:data:`DIVERGING`), and that tick descends from the plan instead. Only a diverging step: a
+new measurement moves the start, and the step that re-plans from it may well cost more than
+the old plan did from there. On the turned start above the diverging steps multiplied the
+objective 15–155 times; under σ = 2 mm noise at 3 Hz (Baseline 1 on ``tri``) 6 % of the
+steps raised it, by 1.5 times (median), and taking all those back cost accuracy (2.4–2.6 mm
+RMS became 2.2–10 mm, one robot of three lost), taking back the doubled ones did not. Where a
+descent finds no better plan and a QP fails, the tick keeps its plain step (a first tick
+fails, as before). Each checked tick evaluates the objective twice (about 0.2 ms each on three
+coils); ``nmpc_tuning`` turns it on where the planner follows held headings, as the damping,
+and the paper rig's trials are unchanged.
+
 The tick splits in two (:meth:`NMPC.prepare`, called by the control loop after the currents
 went out): the preparation linearises every stage around the shifted plan, stage 0 at the
 state predicted for the next tick; the feedback (:meth:`NMPC.plan`) embeds the measured
@@ -192,19 +215,26 @@ controller's safety clamp then bounds the change. The tick after a failed one st
 as a trial's first tick does (currents held, iterated to convergence): the failed plan was
 linearised where the robot no longer is, and continuing from it failed tick after tick
 until its currents ran out (on a three-coil system under σ = 2 mm noise, 1018 of 1119 ticks,
-the coils held at the plan's last currents while the robot drifted off). A start outside the
-position box is clipped onto it; where that tick's QP fails (the box binds every stage, and
-a start on it with a push outward leaves none feasible) it is solved once more from
-:data:`OUTSIDE_START` inside the bound, at rest (on ``tri`` at 3 Hz, σ = 2 mm, 3 trials:
-535 failed ticks had their start clipped onto the bound). Planned from inside every time
-instead, the robot's estimate moved by a millimetre cost accuracy where the first QP solves.
+the coils held at the plan's last currents while the robot drifted off). The position bound
+is hard, and a start may leave no plan within it: one outside the box (clipped onto it) with
+a push outward, or one moving toward the bound faster than the slew-limited currents can
+stop it (the first tick of a ``tri`` trial at 3 Hz under σ = 2 mm: an estimate 1.6 mm inside
+the bound moving toward it at 11 mm/s, from zero currents, failed for each NMPC method).
+Where such a tick's QP fails it is solved once more from the same pose at rest, at least
+:data:`OUTSIDE_START` inside the bound: a problem that holding still solves, so never
+infeasible (on ``tri`` at 3 Hz, σ = 2 mm, 3 trials: 535 failed ticks had their start clipped
+onto the bound). Planned from inside every time instead, the robot's estimate moved by a
+millimetre cost accuracy where the first QP solves. A soft bound (an exact penalty in the
+kernel's QP) made every tick's QP about 1.5–2 times slower on the paper's rig.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -233,6 +263,14 @@ NX = 6
 #: from 1e-2 HPIPM takes 3 interior-point iterations on the S (median) where it took 5
 #: (docs/benchmarks.md); the robust mode, the retry, keeps its default
 KERNEL_MU0 = 1e-2
+NON_FINITE = "non-finite QP"
+#: a step whose objective rises by at most this share is kept (rounding; "Checked steps")
+DESCENT_SLACK = 1e-9
+#: a real-time step that multiplies the objective of the plan it started from more than this
+#: is diverging ("Checked steps")
+DIVERGING = 2.0
+#: the damping is raised at most this many times (up to 1e4 × the first; "Checked steps")
+DAMPING_LEVELS = 5
 #: m: how far inside the position bound a start outside it is planned from (:meth:`NMPC._start`)
 OUTSIDE_START = 1e-3
 #: corridor half-planes per stage (the critical boundary's; FreeSpace.corridor)
@@ -304,6 +342,12 @@ class NMPCConfig:
     # RTI: a Levenberg–Marquardt term μ/2 |step|² on every QP's step (scaled units; module
     # doc, "Step damping"); 0: full Gauss–Newton steps
     step_damping: float = 0.0
+    # RTI: steps checked against the objective of the plan's currents (module doc, "Checked
+    # steps"): the first tick keeps only steps that lower it, raising the damping where one
+    # does not; a real-time step that more than doubles it over the plan it started from is
+    # taken back and the tick descends as the first does. Two evaluations of the objective
+    # a tick
+    step_check: bool = False
     hpipm: dict[str, Any] = field(default_factory=dict)
     # RTI: the QP through magrun's compiled kernel around HPIPM ("direct", falling back to
     # "casadi" where it cannot be built) or through CasADi's HPIPM interface ("casadi")
@@ -424,6 +468,17 @@ class NMPC(Planner):
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
         return x0, u_prev, self.problem.stage_parameters(ref, self.corridor(x0, ref))
 
+    def _may_be_infeasible(self, state: FloatArray, x0: FloatArray) -> bool:
+        """Whether the position bound may leave the start ``x0`` (``state`` clipped) no
+        plan: ``state`` outside the bound, or its velocity would carry it past the bound
+        within the horizon."""
+        position, velocity = np.asarray(state)[:2], x0[3:5]
+        ahead = x0[:2] + velocity * self.config.horizon * self.config.dt
+        return bool(
+            np.any(np.abs(position) > self.position_bound)
+            or np.any(np.abs(ahead) > self.position_bound)
+        )
+
     def prepare(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> None:
         """The real-time iteration's preparation phase for the next tick (RTI solver): the
         plan moved on one stage and every stage linearised there, stage 0 at the predicted
@@ -443,9 +498,10 @@ class NMPC(Planner):
         t0 = time.perf_counter()
         x0, u_prev, params = self._start(state, reference, previous)
         result = self.backend.solve(x0 / STATE_SCALE, u_prev, params)
-        if not result.ok and np.any(np.abs(np.asarray(state)[:2]) > self.position_bound):
-            # a start clipped onto the hard position bound, pushed outward, has no feasible
-            # plan: once more from OUTSIDE_START inside the bound, at rest (module doc)
+        if not result.ok and self._may_be_infeasible(state, x0):
+            # a start on the position bound pushed outward, or moving toward it faster than
+            # the slew-limited currents can stop it, may have no plan within the bound: once
+            # more at rest, at least OUTSIDE_START inside the bound (module doc)
             inner = self.position_bound - OUTSIDE_START
             retry = np.concatenate([np.clip(x0[:2], -inner, inner), x0[2:3], np.zeros(3)])
             result = self.backend.solve(retry / STATE_SCALE, u_prev, params)
@@ -622,21 +678,36 @@ class OCP:
 
     def cost(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, u: FloatArray) -> float:
         """The objective for currents u (N, nu), states simulated from x0 (scaled), stage
-        parameters ``par`` (:meth:`stage_parameters`): for tests."""
-        cfg = self.config
-        J, X, before = 0.0, x0, u_prev
-        for k in range(self.N):
+        parameters ``par`` (:meth:`stage_parameters`)."""
+        return float(self.objective(x0, u_prev, par, np.asarray(u, dtype=np.float64).T))
+
+    @functools.cached_property
+    def objective(self) -> ca.Function:
+        """The problem's objective as one function of the currents,
+        ``objective(x0, u_prev, par, U)`` with U (nu, N) scaled: every stage's and the
+        terminal residuals squared, the states simulated from x0 under U (single shooting),
+        each position held within the position bound.
+        The checked steps' merit (module doc, "Checked steps")."""
+        cfg, N = self.config, self.N
+        x0, u_prev = ca.MX.sym("x0", NX), ca.MX.sym("u_prev", self.nu)
+        par, U = ca.MX.sym("par", NP, N + 1), ca.MX.sym("u", self.nu, N)
+        J: Any = 0
+        X, before = x0, u_prev
+        for k in range(N):
+            u = U[:, k]
             if k > 0:
-                J += float(ca.sumsqr(self.pose_residual["stage"](X, par[:, k])))
-                J += float(ca.sumsqr(self.corridor(X, par[:, k])))
-            J += float(ca.sumsqr(self.heading(X, u[k])))
-            J += cfg.r_current * float(np.sum(u[k] ** 2))
-            J += float(ca.sumsqr(self.uncertainty(X, u[k])))
-            J += cfg.s_current_change * float(np.sum((u[k] - before) ** 2))
-            X = np.asarray(self.step_scaled(X, u[k])).ravel()
-            before = u[k]
-        J += float(ca.sumsqr(self.corridor(X, par[:, self.N])))
-        return J + float(ca.sumsqr(self.pose_residual["terminal"](X, par[:, self.N])))
+                J += ca.sumsqr(self.pose_residual["stage"](X, par[:, k]))
+                J += ca.sumsqr(self.corridor(X, par[:, k]))
+            J += ca.sumsqr(self.heading(X, u)) + ca.sumsqr(self.uncertainty(X, u))
+            J += cfg.r_current * ca.sumsqr(u) + cfg.s_current_change * ca.sumsqr(u - before)
+            X = self.step_scaled(X, u)
+            # the plan's positions are bounded (a hard constraint); a simulated state past
+            # the bound is held on it, where the field model is still defined
+            X = ca.vertcat(ca.fmin(ca.fmax(X[:2], -self.pos_max), self.pos_max), X[2:])
+            before = u
+        J += ca.sumsqr(self.corridor(X, par[:, N]))
+        J += ca.sumsqr(self.pose_residual["terminal"](X, par[:, N]))
+        return ca.Function("nmpc_objective", [x0, u_prev, par, U], [J])
 
 
 @dataclass(frozen=True)
@@ -906,6 +977,8 @@ class RTISolver(_Backend):
                                    g.shape[0], gN.shape[0])  # fmt: skip
         self.robust_retries = 0
         self.relinearised = 0  # prepared ticks linearised again at the measurement
+        self.damped_steps = 0  # steps taken back while descending ("Checked steps")
+        self.checked_back = 0  # real-time steps taken back as diverging (``step_check``)
         self.reset()
         if self.kernel is not None:
             return
@@ -1096,6 +1169,8 @@ class RTISolver(_Backend):
             # cold: hold the currents, rest at x0, iterate to convergence (after a failed
             # tick too: the plan it leaves was linearised where the robot no longer is)
             k.set_iterate(np.tile(s0, (self.ocp.N, 1)), np.zeros((self.ocp.N, nu)))
+            if cfg.step_check:
+                return self._descend_kernel(k, x0, u_prev, par)
             budget = max(cfg.first_tick_iterations, cfg.iterations)
             ready = False
         else:
@@ -1107,10 +1182,10 @@ class RTISolver(_Backend):
         while iterations < budget:
             embedded = ready
             if not ready and not k.prepare(par, s0):
-                return self._failed(iterations + 1, "non-finite QP")
+                return self._failed(iterations + 1, NON_FINITE)
             ready = False
             damped = corrections < cfg.corrective_iterations and cfg.corrective_step < 1.0
-            if damped:
+            if damped or cfg.step_check:
                 before = k.iterate()
             status, info = k.feedback(s0, cfg.max_embedding_defect if embedded else np.inf)
             if status == -2:
@@ -1118,11 +1193,17 @@ class RTISolver(_Backend):
                 # linearised at the measurement instead, as an unprepared tick
                 self.relinearised += 1
                 if not k.prepare(par, s0):
-                    return self._failed(iterations + 1, "non-finite QP")
+                    return self._failed(iterations + 1, NON_FINITE)
                 status, info = k.feedback(s0)
             iterations += 1
             if status != 0:
                 return self._failed(iterations, f"HPIPM status {status}")
+            if cfg.step_check and iterations == 1:
+                objective, plain = self._objective(x0, u_prev, par), k.iterate()
+                if objective(plain[1]) > DIVERGING * objective(before[1]):
+                    k.set_iterate(*before)  # the step is diverging: descend instead
+                    self.checked_back += 1
+                    return self._descend_kernel(k, x0, u_prev, par, plain)
             if damped:  # a corrective iteration: a damped step (module doc)
                 (S0, V0), (S1, V1) = before, k.iterate()
                 a = cfg.corrective_step
@@ -1139,11 +1220,55 @@ class RTISolver(_Backend):
             ):  # fmt: skip
                 corrections -= 1
                 budget += 1
+        return self._solved(k, u_prev, iterations)
+
+    def _objective(
+        self, x0: FloatArray, u_prev: FloatArray, par: FloatArray
+    ) -> Callable[[FloatArray], float]:
+        """The objective of a plan's current steps V (N, nu) from this tick's start."""
+
+        def objective(V: FloatArray) -> float:
+            value = float(self.ocp.objective(x0, u_prev, par, (u_prev + np.cumsum(V, 0)).T))
+            return value if math.isfinite(value) else math.inf  # NaN: no better than any
+
+        return objective
+
+    def _solved(self, k: RTIKernel, u_prev: FloatArray, iterations: int) -> SolveResult:
         self.robust_retries = k.retries
         self._has_plan, self._aligned, self._restart = True, False, False
         S, V = k.iterate()
         self._plan = S
         return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
+
+    def _descend_kernel(
+        self, k: RTIKernel, x0: FloatArray, u_prev: FloatArray, par: FloatArray,
+        plain: tuple[FloatArray, FloatArray] | None = None,
+    ) -> SolveResult:  # fmt: skip
+        """The kernel's iterate descended (:func:`descend`). Where no step is kept and a QP
+        fails, a real-time tick keeps its ``plain`` step (S, V) as the unchecked iteration
+        would; a first tick fails."""
+        s0 = np.concatenate([x0, u_prev])
+        base = self.ocp.config.step_damping
+
+        def step(mu: float) -> tuple[str, float]:
+            k.set_damping(mu)
+            if not k.prepare(par, s0):
+                return NON_FINITE, math.inf
+            status, info = k.feedback(s0)
+            return ("" if status == 0 else f"HPIPM status {status}"), float(info[0])
+
+        try:
+            iterations, back, kept, error = descend(
+                self._objective(x0, u_prev, par), k.iterate, k.set_iterate, step, self.ocp.config
+            )
+        finally:
+            k.set_damping(base)
+        self.damped_steps += back
+        if error and not kept:
+            if plain is None:
+                return self._failed(iterations, error)
+            k.set_iterate(*plain)
+        return self._solved(k, u_prev, iterations)
 
     def _failed(self, iterations: int, message: str) -> SolveResult:
         """A kernel tick that failed. A trial's first tick leaves no plan; a later one leaves
@@ -1157,10 +1282,11 @@ class RTISolver(_Backend):
             return self._solve_kernel(self.kernel, x0, u_prev, par)
         cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
-        refs = par
         if self._z is None:  # cold: hold the currents, rest at x0, iterate to convergence
             N = self.ocp.N
             z = self._pack(np.tile(s0, (N, 1)), np.zeros((N, self.ocp.nu)))
+            if cfg.step_check:
+                return self._descend_casadi(z, x0, u_prev, par)
             budget = max(cfg.first_tick_iterations, cfg.iterations)
         else:
             z = self._shifted(self._z)
@@ -1168,25 +1294,17 @@ class RTISolver(_Backend):
         iterations, message = 0, ""
         corrections = cfg.corrective_iterations
         while iterations < budget:
-            H, g, A, b, lbx, ubx = self.qp_data(z, s0, refs)
             iterations += 1
-            # a non-finite state or model reaches the gradient and the gaps (H alone cannot be)
-            if not (np.all(np.isfinite(np.asarray(g))) and np.all(np.isfinite(np.asarray(b)))):
-                return SolveResult(False, np.zeros(self.ocp.nu), iterations, "non-finite QP")
-            qp = {"h": H, "g": g, "a": A, "lba": b, "uba": b, "lbx": lbx, "ubx": ubx}
-            try:
-                sol = self.qp_solver(**qp)
-                stats = self.qp_solver.stats()
-                if not stats.get("success", False):
-                    self.robust_retries += 1
-                    sol = self.qp_robust(**qp)
-                    stats = self.qp_robust.stats()
-            except RuntimeError as exc:  # an ill-posed QP (CasADi's checks)
-                return SolveResult(False, np.zeros(self.ocp.nu), iterations, str(exc)[-200:])
-            message = str(stats.get("return_status", ""))
-            step = np.asarray(sol["x"], dtype=np.float64).ravel()
-            if not stats.get("success", False) or not np.all(np.isfinite(step)):
-                return SolveResult(False, np.zeros(self.ocp.nu), iterations, message or "failed")
+            step, message = self._qp_step(z, s0, par, 0.0)
+            if step is None:
+                return SolveResult(False, np.zeros(self.ocp.nu), iterations, message)
+            if cfg.step_check and iterations == 1:
+                objective = self._objective(x0, u_prev, par)
+                if objective(self._unpack(z + step)[1]) > DIVERGING * objective(
+                    self._unpack(z)[1]
+                ):  # the step is diverging: descend instead
+                    self.checked_back += 1
+                    return self._descend_casadi(z, x0, u_prev, par, z + step)
             if corrections < cfg.corrective_iterations:  # corrective: damped (module doc)
                 step = cfg.corrective_step * step
             z = z + step
@@ -1200,6 +1318,66 @@ class RTISolver(_Backend):
         self._z = z
         _, V = self._unpack(z)
         return SolveResult(True, u_prev + V[0], iterations, message)
+
+    def _qp_step(
+        self, z: FloatArray, s0: FloatArray, par: FloatArray, extra_damping: float
+    ) -> tuple[FloatArray | None, str]:
+        """CasADi's QP around ``z`` (its Hessian damped by ``extra_damping`` more than the
+        configured μ) solved: (the step, HPIPM's message), or (None, why not)."""
+        H, g, A, b, lbx, ubx = self.qp_data(z, s0, par)
+        # a non-finite state or model reaches the gradient and the gaps (H alone cannot be)
+        if not (np.all(np.isfinite(np.asarray(g))) and np.all(np.isfinite(np.asarray(b)))):
+            return None, NON_FINITE
+        if extra_damping:  # the diagonal is in H's pattern (the regularisation)
+            H = H + extra_damping * ca.DM.eye(H.shape[0])
+        qp = {"h": H, "g": g, "a": A, "lba": b, "uba": b, "lbx": lbx, "ubx": ubx}
+        try:
+            sol = self.qp_solver(**qp)
+            stats = self.qp_solver.stats()
+            if not stats.get("success", False):
+                self.robust_retries += 1
+                sol = self.qp_robust(**qp)
+                stats = self.qp_robust.stats()
+        except RuntimeError as exc:  # an ill-posed QP (CasADi's checks)
+            return None, str(exc)[-200:]
+        message = str(stats.get("return_status", ""))
+        step = np.asarray(sol["x"], dtype=np.float64).ravel()
+        if not stats.get("success", False) or not np.all(np.isfinite(step)):
+            return None, message or "failed"
+        return step, message
+
+    def _descend_casadi(
+        self, z: FloatArray, x0: FloatArray, u_prev: FloatArray, par: FloatArray,
+        plain: FloatArray | None = None,
+    ) -> SolveResult:  # fmt: skip
+        """The plan ``z`` descended (:func:`descend`) with CasADi's QP; ``plain``: as in
+        :meth:`_descend_kernel`."""
+        s0 = np.concatenate([x0, u_prev])
+        base = self.ocp.config.step_damping
+        work = [z]
+
+        def step(mu: float) -> tuple[str, float]:
+            dz, message = self._qp_step(work[0], s0, par, mu - base)
+            if dz is None:
+                return message, math.inf
+            work[0] = work[0] + dz
+            return "", float(np.max(np.abs(dz)))
+
+        def restore(S: FloatArray, V: FloatArray) -> None:
+            work[0] = self._pack(S, V)
+
+        iterations, back, kept, error = descend(
+            self._objective(x0, u_prev, par), lambda: self._unpack(work[0]), restore, step,
+            self.ocp.config,
+        )  # fmt: skip
+        self.damped_steps += back
+        if error and not kept:
+            if plain is None:
+                return SolveResult(False, np.zeros(self.ocp.nu), iterations, error)
+            work[0] = plain
+        self._z = work[0]
+        _, V = self._unpack(work[0])
+        return SolveResult(True, u_prev + V[0], iterations, "SUCCESS")
 
     def _heading_sagged(self, x0: FloatArray, z: FloatArray, u_prev: FloatArray) -> bool:
         """Whether the first currents of plan ``z`` put the field along the moment at the
@@ -1253,6 +1431,53 @@ def channel_field_scale(model: PlanarFieldModel, n: int = 21) -> FloatArray:
     grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
     unit = model.unit_field(grid)  # (n², channels, 2)
     return np.sqrt(np.mean(np.sum(unit**2, axis=-1), axis=0))
+
+
+def descend(
+    objective: Callable[[FloatArray], float],
+    iterate: Callable[[], tuple[FloatArray, FloatArray]],
+    restore: Callable[[FloatArray, FloatArray], None],
+    step: Callable[[float], tuple[str, float]],
+    config: NMPCConfig,
+) -> tuple[int, int, int, str]:
+    """Gauss–Newton steps from a plan toward convergence, each kept only where it lowers
+    ``objective`` of the plan's current steps V (N, nu), else taken back (``restore(S, V)``)
+    and the step damping raised tenfold, lowered again after each kept step (module doc,
+    "Checked steps"). ``iterate()``: the plan (S, V); ``step(μ)``: one step with damping μ,
+    returning '' or why it failed (the plan then unchanged), and the step's size (∞-norm).
+    Up to ``first_tick_iterations`` steps, fewer where one at the configured damping is
+    below ``step_tolerance``, or until a QP fails at the highest damping. Returns (steps,
+    steps taken back, steps kept, '' or why the last step failed); the plan is the last
+    kept one."""
+    base = config.step_damping
+    S, V = iterate()
+    value, level, iterations, back, kept = objective(V), 0, 0, 0, 0
+    while iterations < max(config.first_tick_iterations, config.iterations):
+        error, size = step(_damping(base, level))
+        iterations += 1
+        if error == NON_FINITE:  # the plan itself: no damping mends that
+            return iterations, back, kept, error
+        if not error:
+            S1, V1 = iterate()
+            after = objective(V1)
+            if after <= value + DESCENT_SLACK * abs(value):
+                S, V, value, kept = S1, V1, after, kept + 1
+                if level == 0 and size < config.step_tolerance:
+                    break
+                level = max(level - 1, 0)
+                continue
+            restore(S, V)  # taken back
+        if level == DAMPING_LEVELS:  # no shorter step left to try
+            return iterations, back, kept, error
+        level += 1
+        back += 1
+    return iterations, back, kept, ""
+
+
+def _damping(base: float, level: int) -> float:
+    """The first tick's step damping at a level: the configured one at 0, then tenfold from
+    max(10 × it, 1) (scaled units: the tracking weights are of order 1–10)."""
+    return base if level == 0 else max(10.0 * base, 1.0) * 10.0 ** (level - 1)
 
 
 def _scale(limit: Any) -> Any:
