@@ -237,8 +237,9 @@ def test_the_objective_sums_the_residuals_over_the_simulated_plan(
     zernike_model, magnet_robot, rng
 ) -> None:
     """OCP.objective (one CasADi function, the checked steps' merit) against the stage and
-    terminal residuals summed in a Python loop over states stepped one by one, for random
-    currents on a problem whose heading term is active: equal to rounding."""
+    terminal residuals summed in a Python loop over states stepped one by one (each position
+    held within the bound), for random currents on a problem whose heading term is active
+    and whose target lies outside the bound: equal to rounding."""
     nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=False))
     ocp = nmpc.problem
     state, ref, previous = _problem("wall")
@@ -254,6 +255,7 @@ def test_the_objective_sums_the_residuals_over_the_simulated_plan(
             J += ocp.config.r_current * float(np.sum(u[k] ** 2))
             J += ocp.config.s_current_change * float(np.sum((u[k] - before) ** 2))
             X, before = np.asarray(ocp.step_scaled(X, u[k])).ravel(), u[k]
+            X[:2] = np.clip(X[:2], -ocp.pos_max, ocp.pos_max)  # held within the bound
         J += float(ca.sumsqr(ocp.pose_residual["terminal"](X, par[:, ocp.N])))
         assert ocp.cost(x0 / STATE_SCALE, u_prev, par, u) == pytest.approx(J, rel=1e-12)
 
