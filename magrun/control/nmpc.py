@@ -707,7 +707,11 @@ class OCP:
             before = u
         J += ca.sumsqr(self.corridor(X, par[:, N]))
         J += ca.sumsqr(self.pose_residual["terminal"](X, par[:, N]))
-        return ca.Function("nmpc_objective", [x0, u_prev, par, U], [J])
+        # expanded to scalar operations and compiled (cached): about 5 times faster a call
+        # than the MX graph, and the checked steps call it twice a tick
+        return self.maybe_compiled(
+            ca.Function("nmpc_objective", [x0, u_prev, par, U], [J]).expand()
+        )
 
 
 @dataclass(frozen=True)
