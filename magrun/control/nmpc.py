@@ -981,8 +981,6 @@ class RTISolver(_Backend):
                                    g.shape[0], gN.shape[0])  # fmt: skip
         self.robust_retries = 0
         self.relinearised = 0  # prepared ticks linearised again at the measurement
-        self.damped_steps = 0  # steps taken back while descending ("Checked steps")
-        self.checked_back = 0  # real-time steps taken back as diverging (``step_check``)
         self.reset()
         if self.kernel is not None:
             return
@@ -1206,7 +1204,6 @@ class RTISolver(_Backend):
                 objective, plain = self._objective(x0, u_prev, par), k.iterate()
                 if objective(plain[1]) > DIVERGING * objective(before[1]):
                     k.set_iterate(*before)  # the step is diverging: descend instead
-                    self.checked_back += 1
                     return self._descend_kernel(k, x0, u_prev, par, plain)
             if damped:  # a corrective iteration: a damped step (module doc)
                 (S0, V0), (S1, V1) = before, k.iterate()
@@ -1262,12 +1259,11 @@ class RTISolver(_Backend):
             return ("" if status == 0 else f"HPIPM status {status}"), float(info[0])
 
         try:
-            iterations, back, kept, error = descend(
+            iterations, _, kept, error = descend(
                 self._objective(x0, u_prev, par), k.iterate, k.set_iterate, step, self.ocp.config
             )
         finally:
             k.set_damping(base)
-        self.damped_steps += back
         if error and not kept:
             if plain is None:
                 return self._failed(iterations, error)
@@ -1307,7 +1303,6 @@ class RTISolver(_Backend):
                 if objective(self._unpack(z + step)[1]) > DIVERGING * objective(
                     self._unpack(z)[1]
                 ):  # the step is diverging: descend instead
-                    self.checked_back += 1
                     return self._descend_casadi(z, x0, u_prev, par, z + step)
             if corrections < cfg.corrective_iterations:  # corrective: damped (module doc)
                 step = cfg.corrective_step * step
@@ -1370,11 +1365,10 @@ class RTISolver(_Backend):
         def restore(S: FloatArray, V: FloatArray) -> None:
             work[0] = self._pack(S, V)
 
-        iterations, back, kept, error = descend(
+        iterations, _, kept, error = descend(
             self._objective(x0, u_prev, par), lambda: self._unpack(work[0]), restore, step,
             self.ocp.config,
         )  # fmt: skip
-        self.damped_steps += back
         if error and not kept:
             if plain is None:
                 return SolveResult(False, np.zeros(self.ocp.nu), iterations, error)
