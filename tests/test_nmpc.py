@@ -636,8 +636,8 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
         inside = np.tile([bound - 5e-3, 0.0, 0.0], (21, 1))
         solve, starts, outcomes = nmpc.backend.solve, [], []
 
-        def recorded(x0, u_prev, par, solve=solve, starts=starts, outcomes=outcomes):
-            result = solve(x0, u_prev, par)
+        def recorded(x0, u_prev, par, start=None, solve=solve, starts=starts, outcomes=outcomes):
+            result = solve(x0, u_prev, par, start)
             starts.append(np.array(x0) * STATE_SCALE)
             outcomes.append(result.ok)
             return result
@@ -654,35 +654,54 @@ def test_an_estimate_outside_the_box_is_planned_from_inside_it(zernike_model, ma
         assert np.all(np.abs(X[:, :2] * 1e-3) <= bound + 1e-9)
 
 
-def test_a_failed_start_moving_past_the_bound_is_planned_from_rest(zernike_model, magnet_robot):
-    """A tick whose QP fails from an estimate inside the bound but moving toward it fast
-    enough to cross it within the horizon (1.5 mm inside at 40 mm/s: past it in 0.04 s) is
-    solved again from the same pose at rest; one moving as fast away from the bound, whose
-    failure the bound cannot explain, is not (its failure stands). Here the first solve of
-    each tick is made to fail; the retry's start is checked."""
+def test_a_failed_tick_is_planned_again_from_rest_braking(zernike_model, magnet_robot):
+    """A tick whose QP fails is solved once more from the same pose at rest, starting from a
+    plan that brakes: the currents brought to zero at the slew bound (each step
+    −clip(I, ±ΔI_max)), the states the model gives for them, within the bound. Whichever
+    way the start moves (toward the bound or away from it) and whatever made the QP fail;
+    here the first solve of each tick is made to fail, and the retry's start and plan are
+    checked against that rule computed here."""
     from magrun.control.nmpc import SolveResult
 
     nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig())
-    bound = nmpc.position_bound
-    ref = np.tile([bound - 5e-3, 0.0, 0.0], (21, 1))
-    for velocity, retried in ((0.04, True), (-0.04, False)):
+    bound, N = nmpc.position_bound, nmpc.config.horizon
+    ref = np.tile([bound - 5e-3, 0.0, 0.0], (N + 1, 1))
+    # some beyond one step's slew
+    previous = np.clip(
+        np.linspace(-1.2, 1.0, 8) * nmpc.max_change, -nmpc.max_current, nmpc.max_current
+    )
+    for velocity in (0.04, -0.04):
         nmpc.reset()
         start = np.array([bound - 1.5e-3, 0.0, 0.3, velocity, 0.0, 0.0])
-        solve, starts = nmpc.backend.solve, []
+        solve, calls = nmpc.backend.solve, []
 
-        def failing_first(x0, u_prev, par, solve=solve, starts=starts):
-            starts.append(np.array(x0) * STATE_SCALE)
-            if len(starts) == 1:
+        def failing_first(x0, u_prev, par, start=None, solve=solve, calls=calls):
+            calls.append((np.array(x0) * STATE_SCALE, start))
+            if len(calls) == 1:
                 return SolveResult(False, np.zeros(8), 1, "made to fail")
-            return solve(x0, u_prev, par)
+            return solve(x0, u_prev, par, start)
 
         nmpc.backend.solve = failing_first  # type: ignore[method-assign]
-        plan = nmpc.plan(start, ref, np.zeros(8))
-        assert plan.status.success is retried, velocity
-        assert len(starts) == (2 if retried else 1)
-        if retried:
-            assert_allclose(starts[1][:3], start[:3])
-            assert_allclose(starts[1][3:], 0.0)
+        plan = nmpc.plan(start, ref, previous)
+        assert plan.status.success, velocity
+        assert len(calls) == 2
+        (first, none), (retry, braking) = calls
+        assert none is None
+        assert_allclose(first, start)
+        assert_allclose(retry[:3], start[:3])
+        assert_allclose(retry[3:], 0.0)
+        S, V = braking
+        currents, x = previous.copy(), retry.copy()
+        for k in range(N):
+            step = -np.clip(currents, -nmpc.max_change, nmpc.max_change)
+            currents = currents + step
+            x = nmpc.predict(x, currents)
+            x[:2] = np.clip(x[:2], -bound, bound)
+            assert_allclose(V[k] * nmpc.max_current, step, atol=1e-12)
+            assert_allclose(S[k, 6:] * nmpc.max_current, currents, atol=1e-12)
+            assert_allclose(S[k, :6] * STATE_SCALE, x, rtol=1e-9, atol=1e-12)
+        assert_allclose(S[-1, 6:], 0.0)  # braked to rest within the horizon
+        assert np.all(np.abs(S[:, :2] * 1e-3) <= bound)
 
 
 def test_position_uncertainty_residuals_against_finite_differences(

@@ -209,8 +209,8 @@ model its monomial form, :mod:`magrun.field.polynomial`), and both run compiled 
 (:mod:`magrun.compiled`: the RTI's per-stage functions, IPOPT's NLP callbacks),
 cached on disk.
 
-On failure (no convergence, non-finite output) the plan falls back to the
-previous plan's next currents ("shifted"), or to 0 A ("zero") when there is none; the
+On failure (no convergence, non-finite output; after the retry below) the plan falls back
+to the previous plan's next currents ("shifted"), or to 0 A ("zero") when there is none; the
 controller's safety clamp then bounds the change. The tick after a failed one starts afresh,
 as a trial's first tick does (currents held, iterated to convergence): the failed plan was
 linearised where the robot no longer is, and continuing from it failed tick after tick
@@ -220,11 +220,16 @@ is hard, and a start may leave no plan within it: one outside the box (clipped o
 a push outward, or one moving toward the bound faster than the slew-limited currents can
 stop it (the first tick of a ``tri`` trial at 3 Hz under σ = 2 mm: an estimate 1.6 mm inside
 the bound moving toward it at 11 mm/s, from zero currents, failed for each NMPC method).
-Where such a tick's QP fails it is solved once more from the same pose at rest, at least
-:data:`OUTSIDE_START` inside the bound: a problem that holding still solves, so never
-infeasible (on ``tri`` at 3 Hz, σ = 2 mm, 3 trials: 535 failed ticks had their start clipped
-onto the bound). Planned from inside every time instead, the robot's estimate moved by a
-millimetre cost accuracy where the first QP solves. A soft bound (an exact penalty in the
+Baseline 1's starts carry velocities that are differences of noisy frames (on ``three``
+under σ = 2 mm up to 140 mm/s and 80 rad/s), and its QP failed from some well inside the
+bound too. A tick whose QP fails is solved once more from the same pose at rest, at least
+:data:`OUTSIDE_START` inside the bound, cold from a plan that brakes
+(:meth:`NMPC._braking`: the currents brought to zero at the slew bound, the model's states
+for them, within the bound), so the first QP is linearised at a feasible plan. From the
+held currents instead, a ``three`` start 1.5 mm outside the bound, a coil at its limit
+pushing outward, failed the retry too (HPIPM at its iteration limit). Planned from inside
+every time instead, the robot's estimate moved by a millimetre cost accuracy where the
+first QP solves. A soft bound (an exact penalty in the
 kernel's QP) made every tick's QP about 1.5–2 times slower on the paper's rig.
 """
 
@@ -253,6 +258,9 @@ from magrun.records import ControllerStatus
 from magrun.robot import RobotParams, aligned_substep, discrete_step
 
 FloatArray = NDArray[np.float64]
+#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
+#: (N, nu), scaled
+Iterate = tuple[FloatArray, FloatArray]
 
 #: NLP scaling of the state: mm, mm, rad, mm/s, mm/s, rad/s
 STATE_SCALE = np.array([1e-3, 1e-3, 1.0, 1e-3, 1e-3, 1.0])
@@ -468,16 +476,23 @@ class NMPC(Planner):
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
         return x0, u_prev, self.problem.stage_parameters(ref, self.corridor(x0, ref))
 
-    def _may_be_infeasible(self, state: FloatArray, x0: FloatArray) -> bool:
-        """Whether the position bound may leave the start ``x0`` (``state`` clipped) no
-        plan: ``state`` outside the bound, or its velocity would carry it past the bound
-        within the horizon."""
-        position, velocity = np.asarray(state)[:2], x0[3:5]
-        ahead = x0[:2] + velocity * self.config.horizon * self.config.dt
-        return bool(
-            np.any(np.abs(position) > self.position_bound)
-            or np.any(np.abs(ahead) > self.position_bound)
-        )
+    def _braking(self, x0: FloatArray, previous: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """A plan (S, V), scaled as the backends' iterates, that brakes: from ``x0`` (SI) the
+        currents brought from ``previous`` (A) to zero as fast as the slew bound allows, the
+        states the model gives for them, positions held within the bound."""
+        N, bound = self.config.horizon, self.position_bound
+        u, x = previous.copy(), x0.copy()
+        S, V = np.empty((N, NX + self.n_currents)), np.empty((N, self.n_currents))
+        for k in range(N):
+            change = -np.clip(u, -self.max_change, self.max_change)
+            u = u + change
+            x = self.predict(x, u)
+            if not np.all(np.isfinite(x)):
+                x = x0.copy()
+            x[:2] = np.clip(x[:2], -bound, bound)
+            S[k] = np.concatenate([x / STATE_SCALE, u / self.max_current])
+            V[k] = change / self.max_current
+        return S, V
 
     def prepare(self, state: FloatArray, reference: FloatArray, previous: FloatArray) -> None:
         """The real-time iteration's preparation phase for the next tick (RTI solver): the
@@ -498,13 +513,13 @@ class NMPC(Planner):
         t0 = time.perf_counter()
         x0, u_prev, params = self._start(state, reference, previous)
         result = self.backend.solve(x0 / STATE_SCALE, u_prev, params)
-        if not result.ok and self._may_be_infeasible(state, x0):
-            # a start on the position bound pushed outward, or moving toward it faster than
-            # the slew-limited currents can stop it, may have no plan within the bound: once
-            # more at rest, at least OUTSIDE_START inside the bound (module doc)
+        if not result.ok:
+            # once more at rest, at least OUTSIDE_START inside the bound, from a plan that
+            # brakes (module doc)
             inner = self.position_bound - OUTSIDE_START
             retry = np.concatenate([np.clip(x0[:2], -inner, inner), x0[2:3], np.zeros(3)])
-            result = self.backend.solve(retry / STATE_SCALE, u_prev, params)
+            start = self._braking(retry, np.asarray(previous, dtype=np.float64))
+            result = self.backend.solve(retry / STATE_SCALE, u_prev, params, start)
         elapsed = time.perf_counter() - t0
         prepared, self._prepare_time = self._prepare_time, 0.0
         if result.ok:
@@ -730,9 +745,13 @@ class _Backend:
         """Work for the coming tick before its measurement; whether any was done."""
         return False
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
+    def solve(
+        self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, start: Iterate | None = None
+    ) -> SolveResult:
         """One tick's plan from scaled x0, the previous currents and the (NP, N+1) stage
-        parameters (:meth:`OCP.stage_parameters`)."""
+        parameters (:meth:`OCP.stage_parameters`). With ``start`` (states s₁ … s_N and
+        current steps v₀ … v_{N−1}, scaled) the solve starts cold from that plan instead of
+        the last one."""
         raise NotImplementedError
 
     def fallback(self) -> FloatArray | None:
@@ -872,14 +891,19 @@ class IpoptSolver(_Backend):
         main = v[: self._n_main]
         return np.concatenate([main[width:], main[-width:], np.zeros(v.size - self._n_main)])
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
+    def solve(
+        self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, start: Iterate | None = None
+    ) -> SolveResult:
         ns, nu = self._stage, self.ocp.nu
         p = np.concatenate([x0, u_prev, par.ravel(order="F")])
         args: dict[str, Any] = {
             "p": p, "lbx": self._lbx, "ubx": self._ubx, "lbg": self._lbg, "ubg": self._ubg,
         }  # fmt: skip
-        if self._w is None:
-            cold = np.tile(np.concatenate([u_prev, x0]), self.ocp.N)
+        if self._w is None or start is not None:
+            if start is None:
+                cold = np.tile(np.concatenate([u_prev, x0]), self.ocp.N)
+            else:  # (u_k, X_{k+1}) stage by stage from s_{k+1} = (X_{k+1}, u_k)
+                cold = np.concatenate([start[0][:, NX:], start[0][:, :NX]], axis=1).ravel()
             args["x0"] = np.concatenate([cold, np.zeros(self._lbx.size - cold.size)])
             solver = self.solver
         else:
@@ -1155,8 +1179,8 @@ class RTISolver(_Backend):
         return True
 
     def _solve_kernel(self, k: RTIKernel, x0: FloatArray, u_prev: FloatArray,
-                      par: FloatArray) -> SolveResult:  # fmt: skip
-        cfg, nu = self.ocp.config, self.ocp.nu
+                      par: FloatArray, start: Iterate | None) -> SolveResult:  # fmt: skip
+        cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
         prepared = self._prepared
         self._prepared = None
@@ -1167,10 +1191,10 @@ class RTISolver(_Backend):
             and np.array_equal(prepared[1][NX:], u_prev)
             and np.array_equal(prepared[0], par[:, 1:])
         )
-        if not self._has_plan or self._restart:
-            # cold: hold the currents, rest at x0, iterate to convergence (after a failed
-            # tick too: the plan it leaves was linearised where the robot no longer is)
-            k.set_iterate(np.tile(s0, (self.ocp.N, 1)), np.zeros((self.ocp.N, nu)))
+        if not self._has_plan or self._restart or start is not None:
+            # cold: from start, or holding the currents at rest at x0; to convergence (after
+            # a failed tick too: the plan it leaves was linearised where the robot no longer is)
+            k.set_iterate(*(start if start is not None else self._held(s0)))
             if cfg.step_check:
                 return self._descend_kernel(k, x0, u_prev, par)
             budget = max(cfg.first_tick_iterations, cfg.iterations)
@@ -1222,6 +1246,10 @@ class RTISolver(_Backend):
                 corrections -= 1
                 budget += 1
         return self._solved(k, u_prev, iterations)
+
+    def _held(self, s0: FloatArray) -> Iterate:
+        """The plan that holds the currents with the robot at rest at ``s0``'s pose."""
+        return np.tile(s0, (self.ocp.N, 1)), np.zeros((self.ocp.N, self.ocp.nu))
 
     def _objective(
         self, x0: FloatArray, u_prev: FloatArray, par: FloatArray
@@ -1277,14 +1305,16 @@ class RTISolver(_Backend):
         self._restart = self._has_plan
         return SolveResult(False, np.zeros(self.ocp.nu), iterations, message)
 
-    def solve(self, x0: FloatArray, u_prev: FloatArray, par: FloatArray) -> SolveResult:
+    def solve(
+        self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, start: Iterate | None = None
+    ) -> SolveResult:
         if self.kernel is not None:
-            return self._solve_kernel(self.kernel, x0, u_prev, par)
+            return self._solve_kernel(self.kernel, x0, u_prev, par, start)
         cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
-        if self._z is None:  # cold: hold the currents, rest at x0, iterate to convergence
-            N = self.ocp.N
-            z = self._pack(np.tile(s0, (N, 1)), np.zeros((N, self.ocp.nu)))
+        if self._z is None or start is not None:
+            # cold: from start, or holding the currents at rest at x0; to convergence
+            z = self._pack(*(start if start is not None else self._held(s0)))
             if cfg.step_check:
                 return self._descend_casadi(z, x0, u_prev, par)
             budget = max(cfg.first_tick_iterations, cfg.iterations)
