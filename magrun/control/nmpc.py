@@ -1309,7 +1309,13 @@ class RTISolver(_Backend):
         self, x0: FloatArray, u_prev: FloatArray, par: FloatArray, start: Iterate | None = None
     ) -> SolveResult:
         if self.kernel is not None:
-            return self._solve_kernel(self.kernel, x0, u_prev, par, start)
+            if start is None:
+                return self._solve_kernel(self.kernel, x0, u_prev, par, None)
+            kept = self.kernel.iterate()  # what fallback() moves on if this fails too
+            result = self._solve_kernel(self.kernel, x0, u_prev, par, start)
+            if not result.ok:
+                self.kernel.set_iterate(*kept)
+            return result
         cfg = self.ocp.config
         s0 = np.concatenate([x0, u_prev])
         if self._z is None or start is not None:
