@@ -301,6 +301,16 @@ class ControllerSettings(_Strict):
             ),
         )
     )
+    step_check: bool | Literal["auto"] = Field(
+        "auto",
+        description=(
+            "Measure each NMPC step by the plan's objective: the first tick keeps only steps "
+            "that lower it (raising the damping until one does), and a real-time step that "
+            "more than doubles it is taken back; 'auto': on where the coils cannot hold the "
+            "reference's heading along the trajectory (the planner then follows headings "
+            "they can, lightly weighted), else off."
+        ),
+    )
     current_weight: AutoFactor = Field(
         "auto",
         description=(

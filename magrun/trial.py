@@ -454,7 +454,8 @@ def nmpc_tuning(
     """The NMPC's step damping, current weights and heading weights for a system and task
     (module doc of :mod:`magrun.control.nmpc`: step damping, and the weights): ``held``,
     whether the planner follows held headings instead of the reference's (then the heading
-    weights are :data:`HELD_ANGLE_WEIGHT` of the paper's, and its steps are checked);
+    weights are :data:`HELD_ANGLE_WEIGHT` of the paper's, and its steps are checked, unless
+    the protocol's ``step_check`` says otherwise);
     ``factor``, how many times over the coils give the reference's velocity (median)."""
     damping = settings.step_damping
     if damping == "auto":
@@ -463,8 +464,9 @@ def nmpc_tuning(
     angle = settings.angle_weight
     if angle == "auto":
         angle = HELD_ANGLE_WEIGHT if held else 1.0
+    check = held if settings.step_check == "auto" else settings.step_check
     return replace(
-        nmpc, step_damping=float(damping), step_check=held, r_current=nmpc.r_current * weight,
+        nmpc, step_damping=float(damping), step_check=check, r_current=nmpc.r_current * weight,
         s_current_change=nmpc.s_current_change * weight, q_angle=nmpc.q_angle * angle,
         q_angle_terminal=nmpc.q_angle_terminal * angle,
     )  # fmt: skip

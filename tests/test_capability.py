@@ -252,7 +252,8 @@ def test_the_nmpc_weighs_currents_by_what_the_task_needs() -> None:
     about PAPER_SPEED_FACTOR times over: where a system gives the reference's velocity f times
     over, the same work takes currents f / PAPER_SPEED_FACTOR times smaller as fractions of
     the limit, so R and S scale by that squared (never below the paper rig's); the step damping
-    is 1 where the planner follows held headings. A protocol's numbers override both."""
+    is 1 where the planner follows held headings, and its steps are checked there. A
+    protocol's numbers (and its step_check) override these."""
     from magrun.control.nmpc import NMPCConfig
     from magrun.protocol import ControllerSettings
     from magrun.trial import nmpc_tuning
@@ -278,6 +279,13 @@ def test_the_nmpc_weighs_currents_by_what_the_task_needs() -> None:
     assert tuned.step_damping == 0.25
     assert tuned.q_angle == pytest.approx(0.5 * base.q_angle)
     assert tuned.r_current == pytest.approx(3 * base.r_current)
+    assert tuned.step_check  # auto: held
+    # the protocol's step_check wins over the held-heading rule, either way
+    off = nmpc_tuning(base, ControllerSettings(step_check=False), True, PAPER_SPEED_FACTOR)
+    on = nmpc_tuning(base, ControllerSettings(step_check=True), False, PAPER_SPEED_FACTOR)
+    assert (off.step_check, on.step_check) == (False, True)
+    with pytest.raises(ValueError, match="step_check"):
+        ControllerSettings(step_check="maybe")  # type: ignore[arg-type]
 
 
 def test_integral_action_where_the_weights_are_raised_and_the_headings_are_the_references() -> None:
