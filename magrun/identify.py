@@ -40,6 +40,7 @@ from magrun.prediction import (
     Segments,
     errors_of,
     field_function,
+    recorded_system,
     rollout,
     segments_of,
     start_states,
@@ -105,22 +106,23 @@ def identify(
     """
     from scipy.optimize import least_squares
 
-    from magrun.field.coils import CoilSystem
     from magrun.robot import load_robot
 
     if not train:
         raise ReplayError("identify needs at least one recording to fit to")
-    coils = CoilSystem.load()
+    recorded = {
+        name: [(rec, trial_of(rec).protocol) for rec in map(read_ticks, paths)]
+        for name, paths in (("train", train), ("test", test))
+    }
+    coils = recorded_system([p for pairs in recorded.values() for _, p in pairs])
     fld = field_function(model, coils)
     sets: dict[str, list[Segments]] = {"train": [], "test": []}
     driven: dict[int, list[FloatArray]] = {}
     robots: set[tuple[str, str | None]] = set()
-    for name, paths in (("train", train), ("test", test)):
-        for path in paths:
-            rec = read_ticks(path)
+    for name, pairs in recorded.items():
+        for rec, protocol in pairs:
             if rec.currents.shape[1] != coils.n_channels:
                 raise ReplayError(f"{rec.path}: not {coils.n_channels} current channels")
-            protocol = trial_of(rec).protocol
             robots.add((protocol.robot, protocol.robots_file))
             seg = segments_of(rec, protocol, horizon)
             sets[name].append(seg)
@@ -370,8 +372,6 @@ def bench_timing(
     On a simulated bench the actual pose is the plant's truth; on a real rig it is the
     camera's, so the age and noise are the fluoroscopy's relative to the camera.
     """
-    from magrun.field.coils import CoilSystem
-
     recs = [read_ticks(p) for p in paths]
     if not recs:
         raise ReplayError("identify needs at least one recording")
@@ -384,12 +384,12 @@ def bench_timing(
     th = np.abs(r[:, 2])
     heading = float(np.sqrt(np.mean(th[th <= 5 * 1.4826 * np.median(th)] ** 2)))
     outliers = float(np.mean(np.sqrt(d2) > 5 * max(per_axis, 1e-9) * math.sqrt(2)))
-    coils = CoilSystem.load()
+    protocols = [trial_of(rec).protocol for rec in recs]
+    coils = recorded_system(protocols)
     fld = field_function(model, coils)
-    protocol = trial_of(recs[0]).protocol
-    robot = protocol.robot_params().scaled(moment=force_factor)
+    robot = protocols[0].robot_params().scaled(moment=force_factor)
     g = None if gains is None else np.array([gains[c] for c in coils.channel_names])
-    segs = [segments_of(rec, trial_of(rec).protocol, 1) for rec in recs]
+    segs = [segments_of(rec, p, 1) for rec, p in zip(recs, protocols, strict=True)]
     scan: dict[float, float] = {}
     for tau in LAG_GRID:
         total, count = 0.0, 0

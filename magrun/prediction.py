@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,7 +39,11 @@ from numpy.typing import NDArray
 from magrun.recorded import read_ticks
 from magrun.replay import ReplayError, trial_of
 from magrun.robot import exponential_substep
-from magrun.trial import RunError, coil_gains_of
+from magrun.trial import RunError, coil_gains_of, system_models, system_of
+
+if TYPE_CHECKING:
+    from magrun.field.coils import CoilSystem
+    from magrun.protocol import Protocol
 
 FloatArray = NDArray[np.float64]
 #: the field models a recording can be replayed with
@@ -79,11 +84,9 @@ def _wrap(a: Any) -> Any:
 
 def field_function(model: str, coils: Any) -> Any:
     """``f(positions (n, 2), currents (n, C)) -> (B, G)``, with ``B[k]`` and ``G[k][l]``
-    arrays of n (T, T/m), for one of :data:`MODELS`."""
+    arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``coils``."""
     if model in ("zernike", "lut"):
-        from magrun.control.methods import shipped_models
-
-        zernike, lut = shipped_models()
+        zernike, lut = system_models(coils.folder)
         planar = zernike if model == "zernike" else lut
 
         def analytic(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
@@ -191,6 +194,19 @@ def errors_of(seg: Segments, positions: FloatArray, headings: FloatArray) -> tup
     return pos, ang
 
 
+def recorded_system(protocols: Sequence[Protocol]) -> CoilSystem:
+    """The coil system the recordings of ``protocols`` were made on (their ``system``: a
+    folder, or the paper's rig), loaded once; a :class:`~magrun.replay.ReplayError` where
+    they name different systems or the folder's description is bad."""
+    systems = sorted({p.system or "the paper's rig" for p in protocols})
+    if len(systems) != 1:
+        raise ReplayError(f"the recordings are of different coil systems: {', '.join(systems)}")
+    try:
+        return system_of(protocols[0])
+    except RunError as exc:
+        raise ReplayError(str(exc)) from exc
+
+
 def prediction_errors(
     path: str | Path, model: str = "zernike", horizon: int = 1, overrides: tuple[str, ...] = ()
 ) -> PredictionErrors:
@@ -198,13 +214,11 @@ def prediction_errors(
     at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
     robot, or ``controller.coil_gains``: the model with a coil calibration). Raises
     :class:`~magrun.replay.ReplayError` on what it cannot use."""
-    from magrun.field.coils import CoilSystem
-
     if horizon < 1:
         raise ReplayError(f"--horizon must be at least 1, got {horizon}")
     rec = read_ticks(path)
     protocol = trial_of(rec, overrides).protocol
-    coils = CoilSystem.load()
+    coils = recorded_system([protocol])
     if rec.currents.shape[1] != coils.n_channels:
         raise ReplayError(
             f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "

@@ -121,6 +121,7 @@ _RECORDED_FILES = {
     "robots_file": "robots file",
     "controller.coil_gains": "coil calibration",
     "simulation.plant": "plant file",
+    "system": "coil-system folder",
 }
 
 

@@ -329,6 +329,55 @@ def test_the_shipped_octomag_protocol_runs_its_quick_trials(tmp_path: Path) -> N
     for entry in manifest["trials"]:
         assert entry["status"] == "ok", entry
         assert entry["rms_position_mm"] < 0.2, entry
+    # the model replayed on the recording is OctoMag's, as the trial's own prediction was:
+    # the one-step error agrees with the trial's (its NMPC's prediction against the plant,
+    # 6 µm here); the paper rig's maps (also 8 channels) gave 40 µm
+    from magrun.prediction import prediction_errors
+
+    (proposed,) = [e for e in manifest["trials"] if e["method"] == "proposed"]
+    errors = prediction_errors(tmp_path / "octomag" / proposed["mcap"], "zernike")
+    own = proposed["rms_prediction_position_mm"]
+    assert 0.5 * own < errors.position_mm[0] < 1.5 * own, (errors.position_mm[0], own)
+
+
+def test_replay_and_identify_use_the_recordings_coil_system(tmp_path: Path) -> None:
+    """The models a recording is replayed with (``replay --model``, ``identify``) are its own
+    coil system's, named by its protocol: OctoMag's Zernike and lookup-table models, equal to
+    loading them from the folder, not the paper rig's (which has 8 channels too). Recordings
+    of two systems are refused together, naming both."""
+    from magrun.field.lut import LookupTableFieldModel
+    from magrun.prediction import field_function, recorded_system
+    from magrun.protocol import Protocol
+    from magrun.replay import ReplayError
+
+    folder = ROOT / "systems" / "octomag"
+    body = {
+        "name": "p", "trajectory": {"kind": "s_curve", "size_mm": 10, "speed_mm_s": 1},
+        "methods": ["proposed"],
+    }  # fmt: skip
+    octomag = Protocol.model_validate({**body, "system": str(folder)})
+    paper = Protocol.model_validate(body)
+    coils = recorded_system([octomag, octomag])
+    assert coils.folder == folder
+    assert recorded_system([paper]).folder is None
+    rng = np.random.default_rng(0)
+    positions = rng.uniform(-8e-3, 8e-3, (5, 2))
+    currents = rng.uniform(-5, 5, (5, coils.n_channels))
+    shipped = CoilSystem.load()
+    for name, own in (
+        ("zernike", ZernikeFieldModel.load(system=folder)),
+        ("lut", LookupTableFieldModel.load(system=folder)),
+    ):
+        B, G = field_function(name, coils)(positions, currents)
+        want_B, want_G = own.field_and_gradient(positions, currents)
+        assert_allclose(B, want_B.T, rtol=1e-12, atol=1e-15)
+        assert_allclose(G, want_G.transpose(1, 2, 0), rtol=1e-12, atol=1e-15)
+        other, _ = field_function(name, shipped)(positions, currents)
+        assert not np.allclose(other, B, rtol=0.1)
+    with pytest.raises(ReplayError, match="different coil systems") as err:
+        recorded_system([octomag, paper])
+    assert "octomag" in str(err.value)
+    assert "the paper's rig" in str(err.value)
 
 
 def test_the_papers_rig_records_what_it_recorded_before(tmp_path: Path) -> None:
