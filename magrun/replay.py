@@ -99,7 +99,7 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
     except YamlModelError as exc:
         # files the protocol named, recorded as paths on the machine that ran it
         hints = [
-            f"\n(a {what} recorded elsewhere: give its file, --set {key}=PATH)"
+            f"\n(a {what} recorded elsewhere: give its path, --set {key}=PATH)"
             for key, what in _RECORDED_FILES.items()
             if key in str(exc)
         ]
