@@ -82,7 +82,7 @@ def _wrap(a: Any) -> Any:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def field_function(model: str, coils: Any) -> Any:
+def field_function(model: str, coils: CoilSystem) -> Any:
     """``f(positions (n, 2), currents (n, C)) -> (B, G)``, with ``B[k]`` and ``G[k][l]``
     arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``coils``."""
     if model in ("zernike", "lut"):

@@ -476,7 +476,7 @@ class NMPC(Planner):
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
         return x0, u_prev, self.problem.stage_parameters(ref, self.corridor(x0, ref))
 
-    def _braking(self, x0: FloatArray, previous: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def _braking(self, x0: FloatArray, previous: FloatArray) -> Iterate:
         """A plan (S, V), scaled as the backends' iterates, that brakes: from ``x0`` (SI) the
         currents brought from ``previous`` (A) to zero as fast as the slew bound allows, the
         states the model gives for them, positions held within the bound."""
@@ -1147,7 +1147,7 @@ class RTISolver(_Backend):
         parts.append(S[-1])
         return np.concatenate(parts)
 
-    def _unpack(self, z: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def _unpack(self, z: FloatArray) -> Iterate:
         N, nu, ns = self.ocp.N, self.ocp.nu, self.ns
         mid = z[nu : nu + (N - 1) * (ns + nu)].reshape(N - 1, ns + nu)
         S = np.vstack([mid[:, :ns], z[-ns:]])
@@ -1271,7 +1271,7 @@ class RTISolver(_Backend):
 
     def _descend_kernel(
         self, k: RTIKernel, x0: FloatArray, u_prev: FloatArray, par: FloatArray,
-        plain: tuple[FloatArray, FloatArray] | None = None,
+        plain: Iterate | None = None,
     ) -> SolveResult:  # fmt: skip
         """The kernel's iterate descended (:func:`descend`). Where no step is kept and a QP
         fails, a real-time tick keeps its ``plain`` step (S, V) as the unchecked iteration
@@ -1469,7 +1469,7 @@ def channel_field_scale(model: PlanarFieldModel, n: int = 21) -> FloatArray:
 
 def descend(
     objective: Callable[[FloatArray], float],
-    iterate: Callable[[], tuple[FloatArray, FloatArray]],
+    iterate: Callable[[], Iterate],
     restore: Callable[[FloatArray, FloatArray], None],
     step: Callable[[float], tuple[str, float]],
     config: NMPCConfig,
