@@ -1213,17 +1213,17 @@ class RTISolver(_Backend):
             damped = corrections < cfg.corrective_iterations and cfg.corrective_step < 1.0
             if damped or cfg.step_check:
                 before = k.iterate()
-            status, info = k.feedback(s0, cfg.max_embedding_defect if embedded else np.inf)
-            if status == -2:
+            fb = k.feedback(s0, cfg.max_embedding_defect if embedded else np.inf)
+            if fb.status == -2:
                 # the measurement is too far from the prediction for the linearisation there:
                 # linearised at the measurement instead, as an unprepared tick
                 self.relinearised += 1
                 if not k.prepare(par, s0):
                     return self._failed(iterations + 1, NON_FINITE)
-                status, info = k.feedback(s0)
+                fb = k.feedback(s0)
             iterations += 1
-            if status != 0:
-                return self._failed(iterations, f"HPIPM status {status}")
+            if fb.status != 0:
+                return self._failed(iterations, f"HPIPM status {fb.status}")
             if cfg.step_check and iterations == 1:
                 objective, plain = self._objective(x0, u_prev, par), k.iterate()
                 if objective(plain[1]) > DIVERGING * objective(before[1]):
@@ -1234,14 +1234,13 @@ class RTISolver(_Backend):
                 a = cfg.corrective_step
                 k.set_iterate(S0 + a * (S1 - S0), V0 + a * (V1 - V0))
                 if self.ocp.has_heading:
-                    info = info.copy()
                     u0 = u_prev + V0[0] + a * (V1[0] - V0[0])  # the damped first currents
-                    info[3] = float(self.ocp.heading_check(x0, u0))
-            if info[0] < cfg.step_tolerance:
+                    fb = fb._replace(heading_residual=float(self.ocp.heading_check(x0, u0)))
+            if fb.step < cfg.step_tolerance:
                 break
             if (
                 iterations == budget and corrections > 0 and self.ocp.has_heading
-                and info[3] < -cfg.corrective_sag * self.ocp.heading_scale
+                and fb.heading_residual < -cfg.corrective_sag * self.ocp.heading_scale
             ):  # fmt: skip
                 corrections -= 1
                 budget += 1
@@ -1283,8 +1282,8 @@ class RTISolver(_Backend):
             k.set_damping(mu)
             if not k.prepare(par, s0):
                 return NON_FINITE, math.inf
-            status, info = k.feedback(s0)
-            return ("" if status == 0 else f"HPIPM status {status}"), float(info[0])
+            fb = k.feedback(s0)
+            return ("" if fb.status == 0 else f"HPIPM status {fb.status}"), fb.step
 
         try:
             iterations, _, kept, error = descend(

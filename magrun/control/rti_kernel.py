@@ -26,7 +26,7 @@ import ctypes
 import os
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import casadi as ca
 import numpy as np
@@ -136,6 +136,25 @@ def build_kernel(
     return shared_library(name, write, optimisation="-O2", link=link, without=FALLBACK)
 
 
+class Feedback(NamedTuple):
+    """What one :meth:`RTIKernel.feedback` did: the C driver's status and its ``info``
+    array (``rti_feedback`` in ``rti_hpipm.c``) by name."""
+
+    status: int  # 0: solved, the iterate moved; -2: the defect exceeded max_defect; else HPIPM's
+    step: float  # max |step| over the plan, scaled units (0 where nothing was solved)
+    qp_iterations: int  # HPIPM's iterations, the robust retry's included
+    robust: bool  # whether the fast mode failed and the robust mode solved again
+    heading_residual: float  # the heading term's residual at stage 0 after the step
+    defect: float  # stage 0 linearised at the prepared point against the stage at s0, ∞-norm
+
+    @classmethod
+    def read(cls, status: int, info: FloatArray) -> Feedback:
+        return cls(
+            status=int(status), step=float(info[0]), qp_iterations=int(info[1]),
+            robust=bool(info[4]), heading_residual=float(info[3]), defect=float(info[5]),
+        )  # fmt: skip
+
+
 class RTIKernel:
     """The compiled kernel's state for one controller: HPIPM's structures and the iterate."""
 
@@ -213,15 +232,15 @@ class RTIKernel:
         s = np.ascontiguousarray(s_lin, dtype=np.float64)
         return self._lib.rti_prepare(self._handle, _ptr(p), _ptr(s)) == 0
 
-    def feedback(self, s0: FloatArray, max_defect: float = np.inf) -> tuple[int, FloatArray]:
-        """Embed the start ``s0``, solve, step: HPIPM's status (0: solved, the iterate moved;
-        -2: the embedding's defect exceeded ``max_defect``, nothing solved) and [max |step|,
-        QP iterations, status, heading residual at stage 0, robust retry, the defect]: how
-        far stage 0 linearised at the prepared point is from the stage at ``s0``, ∞-norm
-        in scaled units."""
+    def feedback(self, s0: FloatArray, max_defect: float = np.inf) -> Feedback:
+        """Embed the start ``s0``, solve, step (:class:`Feedback`): status 0 where solved
+        and the iterate moved, -2 where the embedding's defect (how far stage 0 linearised
+        at the prepared point is from the stage at ``s0``) exceeded ``max_defect`` and
+        nothing was solved, else HPIPM's."""
         s = np.ascontiguousarray(s0, dtype=np.float64)
+        self._info[:] = 0.0
         status = self._lib.rti_feedback(self._handle, _ptr(s), self._info_p, float(max_defect))
-        return int(status), self._info
+        return Feedback.read(status, self._info)
 
     def predict(self, X: FloatArray, u: FloatArray) -> FloatArray:
         """One step of the model from the scaled state ``X`` under currents ``u`` (scaled)."""
