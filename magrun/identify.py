@@ -46,7 +46,7 @@ from magrun.prediction import (
     start_states,
     substep_each,
 )
-from magrun.recorded import read_ticks
+from magrun.recordings.reader import read_ticks
 from magrun.replay import ReplayError, trial_of
 
 FloatArray = NDArray[np.float64]

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.recorded import read_ticks
+from magrun.recordings.reader import read_ticks
 from magrun.replay import ReplayError, trial_of
 from magrun.robot import exponential_substep
 from magrun.trial import RunError, coil_gains_of, system_models, system_of
@@ -131,7 +131,7 @@ class Segments:
 
 
 def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
-    """The :class:`Segments` of a recording (:class:`~magrun.recorded.RecordedTrial`) made
+    """The :class:`Segments` of a recording (:class:`~magrun.recordings.reader.RecordedTrial`) made
     under ``protocol``; raises :class:`~magrun.replay.ReplayError` if it has none."""
     dt = 1.0 / protocol.controller.rate_hz
     latency = protocol.controller.latency

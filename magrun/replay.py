@@ -10,8 +10,9 @@ from the recording, since the robot really moved under those currents.
 
 :func:`write_replay` writes the result: a copy of the recording's channels and metadata with
 ``/replay/<label>/robot/pose/estimated`` and ``…/predicted`` added, a ``replay`` metadata
-record saying what was changed, and an ``.rrd`` beside it (:mod:`magrun.rerun_log`), where
-the replayed streams are drawn over the recorded ones.
+record saying what was changed, and an ``.rrd`` beside it
+(:mod:`magrun.recordings.rerun_log`), where the replayed streams are drawn over the recorded
+ones.
 
 Why replaying the recording's own settings is not exact: in the live loop the next tick's
 prior is the NMPC's own predicted state from its solve; the replay predicts with the model
@@ -32,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.protocol import Conditions, Trial, protocol_from_json
-from magrun.recorded import RecordedTrial, read_ticks
+from magrun.recordings.reader import RecordedTrial, read_ticks
 
 FloatArray = NDArray[np.float64]
 
@@ -137,8 +138,9 @@ def replay_estimator(
     ``controller.kalman.measurement_sigma_mm=0.5``. ``estimator``: replace the method's own
     estimator by ``kalman`` (the proposed method's filter, tuned by the protocol),
     ``measurement`` (the measurement, else the prediction) or ``hold`` (the last
-    measurement). Raises :class:`ReplayError` (or :class:`~magrun.recorded.RecordingReadError`)
-    on a recording or settings it cannot use.
+    measurement). Raises :class:`ReplayError` (or
+    :class:`~magrun.recordings.reader.RecordingReadError`) on a recording or settings it cannot
+    use.
     """
     from magrun.control.estimation import (
         HoldLastMeasurement,
@@ -212,69 +214,28 @@ def write_replay(
     metadata record added, written to a temporary name and renamed when complete; then its
     ``.rrd`` beside it, streamed to the Rerun viewer at the gRPC URL ``view`` as well if one
     is given. Returns the ``.rrd``'s path."""
-    from mcap.reader import make_reader
-    from mcap.writer import CompressionType, Writer
-    from mcap_protobuf.schema import register_schema
-
-    from magrun.recording import pose_message
-    from magrun.recover import copy_channel
-    from magrun.rerun_log import rrd_from_mcap
+    from magrun.recordings.rerun_log import rrd_from_mcap
+    from magrun.recordings.writer import copy_with_poses
 
     out = Path(out)
     if out.resolve() == rec.path.resolve():
         raise ReplayError(f"{out}: write the replay elsewhere, never over the recording")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
     extra: list[tuple[int, str, FloatArray]] = []  # (log time, topic, pose) in time order
     for k, t_ns in enumerate(rec.t_ns.tolist()):
         extra.append((t_ns, replay_topic(result.label, "estimated"), result.estimated[k]))
         if np.all(np.isfinite(result.predicted[k])):
             extra.append((t_ns, replay_topic(result.label, "predicted"), result.predicted[k]))
-    with rec.path.open("rb") as src, tmp.open("wb") as fh:
-        reader = make_reader(src)
-        header = reader.get_header()
-        writer = Writer(fh, compression=CompressionType.ZSTD)
-        writer.start(profile=header.profile, library=header.library)
-        schema_ids: dict[int, int] = {}
-        channel_ids: dict[int, int] = {}
-        own: dict[str, int] = {}
-
-        def add_extra(t_ns: int, topic: str, pose: FloatArray) -> None:
-            msg = pose_message(pose, t_ns)
-            if topic not in own:
-                own[topic] = writer.register_channel(
-                    topic=topic, message_encoding="protobuf",
-                    schema_id=register_schema(writer, type(msg)),
-                )  # fmt: skip
-            writer.add_message(own[topic], t_ns, msg.SerializeToString(), t_ns)
-
-        i = 0
-        for schema, channel, message in reader.iter_messages(log_time_order=True):
-            while i < len(extra) and extra[i][0] < message.log_time:
-                add_extra(*extra[i])
-                i += 1
-            writer.add_message(
-                copy_channel(writer, channel, schema, channel_ids, schema_ids),
-                message.log_time, message.data, message.publish_time, message.sequence,
-            )  # fmt: skip
-        for item in extra[i:]:
-            add_extra(*item)
-        for record in reader.iter_metadata():
-            if record.name != "replay":  # a replay of a replay keeps only its own record
-                writer.add_metadata(record.name, dict(record.metadata))
-        writer.add_metadata(
-            "replay",
-            {
-                "source": rec.path.name,
-                "kind": "estimator",
-                "label": result.label,
-                "estimator": result.estimator,
-                "settings": json.dumps(list(result.settings)),
-                **{k: json.dumps(v) for k, v in result.errors.items()},
-            },
-        )
-        writer.finish()
-    tmp.replace(out)
+    # a replay of a replay keeps only its own "replay" record
+    record = {
+        "source": rec.path.name,
+        "kind": "estimator",
+        "label": result.label,
+        "estimator": result.estimator,
+        "settings": json.dumps(list(result.settings)),
+        **{k: json.dumps(v) for k, v in result.errors.items()},
+    }
+    copy_with_poses(rec.path, out, extra, "replay", record)
     rrd = out.with_suffix(".rrd")
     rrd_from_mcap(out, rrd, live_view=view)
     return rrd

@@ -23,7 +23,7 @@ from typing import Any
 
 from magrun.control import METHODS
 from magrun.protocol import condition_slug
-from magrun.recorded import read_ticks
+from magrun.recordings.reader import read_ticks
 from magrun.replay import ReplayError, rms_errors, trial_of
 from magrun.runner import execute_trial
 
@@ -96,7 +96,7 @@ def resimulate(
     ReplayError
         A recording from hardware, an unknown method, a protocol the overrides break, an
         output that would overwrite the recording, or a rerun that failed.
-    magrun.recorded.RecordingReadError
+    magrun.recordings.reader.RecordingReadError
         The file is not a readable magrun recording.
     """
     source = Path(recording)
@@ -161,16 +161,6 @@ def resimulate(
 def same_messages(a: str | Path, b: str | Path, topics: tuple[str, ...] = COMPARED_TOPICS) -> bool:
     """Whether two recordings hold the same messages on ``topics``: topic, log time and the
     serialised bytes, in order."""
-    from mcap.reader import make_reader
+    from magrun.recordings.reader import raw_messages
 
-    def messages(path: str | Path) -> list[tuple[str, int, bytes]]:
-        with open(path, "rb") as fh:
-            reader = make_reader(fh)
-            return [
-                (channel.topic, message.log_time, bytes(message.data))
-                for _s, channel, message in reader.iter_messages(
-                    topics=list(topics), log_time_order=True
-                )
-            ]
-
-    return messages(a) == messages(b)
+    return raw_messages(a, topics) == raw_messages(b, topics)

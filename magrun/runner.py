@@ -7,7 +7,7 @@
 One trial (:func:`execute_trial`) is built from the :class:`~magrun.protocol.Trial` alone by
 :func:`magrun.trial.assemble` (the rig, seeded; the controller; the camera tracker; the
 fluoroscopy mimic, seeded; the safety layer); the runner adds a recorder
-(:class:`~magrun.recording.TrialRecorder`), runs it and writes its manifest entry.
+(:class:`~magrun.recordings.writer.TrialRecorder`), runs it and writes its manifest entry.
 Because a trial depends on nothing else, trials run in any order, in any process: a local
 process pool (``jobs``), or Ray on a cluster (:func:`ray_executor`), give the same recordings
 (up to the wall-clock fields: solve and compute times; and with ``latency_ms: measured`` the
@@ -114,8 +114,8 @@ def execute_trial(
     ``view``: a Rerun viewer's gRPC URL (``rerun+http://HOST:PORT/proxy``) that the trial
     is also streamed to while it runs ("": none)."""
     from magrun.health import trial_health
-    from magrun.recorder_process import ProcessRecorder
-    from magrun.recording import RecordingSetup, TrialRecorder, software_versions
+    from magrun.recordings.process import ProcessRecorder
+    from magrun.recordings.writer import RecordingSetup, TrialRecorder, software_versions
     from magrun.trial import assemble
 
     entry = manifest_entry(trial)
@@ -560,7 +560,7 @@ def _run_locked(
                 else:
                     item.unlink()
     trials = protocol.expand(quick=quick, seed=seed)
-    from magrun.recording import software_versions
+    from magrun.recordings.writer import software_versions
 
     manifest: dict[str, Any] = {
         "protocol": protocol.name,
@@ -605,7 +605,7 @@ def _intact(folder: Path, entry: dict[str, Any]) -> bool:
     summary), with one controller status per recorded tick (``ticks`` − ``dropped_ticks`` of
     its manifest entry), and its ``.rrd`` there. A truncated or tampered file is not, and
     ``--resume`` runs its trial again."""
-    from mcap.reader import make_reader
+    from magrun.recordings.reader import message_counts
 
     relpath, rrd = str(entry.get("mcap", "")), str(entry.get("rrd", ""))
     try:
@@ -614,12 +614,10 @@ def _intact(folder: Path, entry: dict[str, Any]) -> bool:
             return False
         if rrd and not (folder / rrd).is_file():
             return False
-        with mcap.open("rb") as fh:
-            summary = make_reader(fh).get_summary()
-        if summary is None or summary.statistics is None:
+        counts = message_counts(mcap)
+        if counts is None:
             return False
-        counts = summary.statistics.channel_message_counts
-        status = sum(n for c, n in counts.items() if summary.channels[c].topic == STATUS_TOPIC)
+        status = counts.get(STATUS_TOPIC, 0)
         recorded = int(entry.get("ticks", -1)) - int(entry.get("dropped_ticks") or 0)
     except Exception:  # any damage (mcap raises several types): not intact
         return False

@@ -27,7 +27,7 @@ METHODS = "[proposed,baseline1,baseline2,baseline3,baseline4,baseline5]"
 def record(out: Path) -> dict[str, np.ndarray]:
     """Run tiny.yaml with every method into ``out``; the arrays described above."""
     from magrun.protocol import load_protocol
-    from magrun.recorded import read_ticks
+    from magrun.recordings.reader import read_ticks
     from magrun.runner import run_protocol
 
     protocol = load_protocol(HERE / "data" / "protocols" / "tiny.yaml", (f"methods={METHODS}",))

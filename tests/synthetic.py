@@ -16,7 +16,7 @@ import numpy as np
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
-from magrun.recording import CoilCurrents, ControllerStatusMsg, pose_message
+from magrun.recordings.writer import CoilCurrents, ControllerStatusMsg, pose_message
 
 DT = 1 / 25.5  # s, the control period the synthetic recordings claim
 LENGTH, DIAMETER = 8e-3, 2e-3  # m, the synthetic robot's capsule

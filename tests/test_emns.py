@@ -529,7 +529,7 @@ def test_per_channel_limits_hold_in_every_method_and_over_the_wire(tmp_path: Pat
     result = CliRunner().invoke(cli, ["run", str(protocol), "--out", str(tmp_path / "r")])
     assert result.exit_code == 0, result.output
     manifest = json.loads((tmp_path / "r" / "limited" / "manifest.json").read_text())
-    from magrun.recorded import read_ticks
+    from magrun.recordings.reader import read_ticks
 
     dt = 1 / 25.5
     for entry in manifest["trials"]:

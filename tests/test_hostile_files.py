@@ -512,7 +512,7 @@ def fifo(tmp_path: Path) -> Path:
 def test_readers_refuse_a_fifo_without_waiting(fifo: Path, tmp_path: Path) -> None:
     from analysis.load import RecordingError, find_recordings, read_recording
     from magrun.files import NotRegularFileError, open_binary
-    from magrun.recover import is_mcap
+    from magrun.recordings.recover import is_mcap
     from magrun.yamlio import read_npz, read_text_file
 
     with pytest.raises(NotRegularFileError, match="not a regular file"):

@@ -29,7 +29,7 @@ from magrun.field.grid import ChannelGrid
 from magrun.field.lut import LookupTableFieldModel
 from magrun.field.mpem import MAX_COEFFICIENT, MAX_SOURCE_POSITION_M, MpemError, MpemModel
 from magrun.field.zernike import ZernikeFieldModel
-from magrun.recover import recover
+from magrun.recordings.recover import recover
 from magrun.rigs.emulator import RigEmulator
 from magrun.rigs.sim import SimRig
 from magrun.rigs.wire import LineConnection

@@ -35,9 +35,27 @@ def test_validating_protocols_loads_no_solver_tracker_or_recorder() -> None:
 
 
 def test_the_recorder_loads_no_solver() -> None:
-    assert "casadi" not in loaded_after("import magrun.recording, magrun.recorder_process")
+    loaded = loaded_after("import magrun.recordings.writer, magrun.recordings.process")
+    assert "casadi" not in loaded
 
 
 def test_the_probe_sees_a_heavy_import() -> None:
     """The check above can fail: building a controller loads CasADi."""
     assert "casadi" in loaded_after("import magrun.control.methods")
+
+
+def test_every_module_but_recordings_is_kept_from_the_recording_libraries() -> None:
+    """The contract that only ``magrun.recordings`` imports mcap, the protobuf schemas and
+    rerun names its sources one by one: a new module or package of magrun must be on it
+    (or be recordings itself), or the contract would not see it."""
+    import pkgutil
+    import tomllib
+
+    import magrun
+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    contracts = config["tool"]["importlinter"]["contracts"]
+    (contract,) = [c for c in contracts if c["name"].startswith("Only recordings imports")]
+    assert {"mcap", "rerun"} <= set(contract["forbidden_modules"])
+    modules = {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
+    assert modules - set(contract["source_modules"]) == {"magrun.recordings"}

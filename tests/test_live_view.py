@@ -27,8 +27,8 @@ from test_recording import _rrd_rows, _ticks
 from magrun.cli import cli
 from magrun.cli.common import InputError
 from magrun.cli.viewer import grpc_url
-from magrun.recording import RecordingSetup, TrialRecorder
-from magrun.rerun_log import viewer_listening
+from magrun.recordings.rerun_log import viewer_listening
+from magrun.recordings.writer import RecordingSetup, TrialRecorder
 from magrun.tracking.camera import Camera
 
 RERUN = str(Path(sys.executable).with_name("rerun"))
@@ -198,9 +198,9 @@ def test_the_file_is_written_the_same_with_a_viewer_and_without(
     """A live view gets rows as often as LIVE_FLUSH_S of wall time allows (here: every
     tick), the file keeps its own chunks (one per second of trial time): the same rows in
     the same chunks as without a viewer."""
-    import magrun.recording
+    import magrun.recordings.writer
 
-    monkeypatch.setattr(magrun.recording, "LIVE_FLUSH_S", 0.0)
+    monkeypatch.setattr(magrun.recordings.writer, "LIVE_FLUSH_S", 0.0)
     ticks = _ticks(60, None)  # 2.4 s at 25 Hz
     alone = _record(tmp_path / "alone", "", ticks)
     viewed = _record(tmp_path / "viewed", sink.url, ticks)
@@ -244,7 +244,7 @@ def test_a_viewer_closed_mid_trial_costs_the_recording_nothing(
 @pytest.mark.parametrize("writer", ["thread", "process"])
 def test_both_writers_stream(sink: Sink, tmp_path: Path, writer: str) -> None:
     """The recorder thread and the recorder process (the hardware rig's) both stream."""
-    from magrun.recorder_process import ProcessRecorder
+    from magrun.recordings.process import ProcessRecorder
 
     setup = RecordingSetup(
         trial={"method": "x"}, channel_names=tuple("abcdefgh"), recording_id=writer,
@@ -379,8 +379,8 @@ def test_a_recorded_jpeg_reaches_the_live_view_as_its_pixels(channels: int) -> N
     red-and-green gradient tells RGB from BGR), within JPEG's loss at quality 90."""
     import numpy as np
 
-    from magrun.recording import encode_jpeg
-    from magrun.rerun_log import _decode_jpeg
+    from magrun.recordings.rerun_log import _decode_jpeg
+    from magrun.recordings.writer import encode_jpeg
 
     y, x = np.mgrid[0:48, 0:64]
     frame = np.stack([x * 4, y * 5, np.full_like(x, 30)], axis=-1).astype(np.uint8)

@@ -456,7 +456,7 @@ def test_a_bench_trial_is_the_same_every_time(tmp_path: Path) -> None:
     """Every imperfection on (the clinical preset: frame age with jitter, flow, outliers,
     drops): the same protocol and seed record the same poses and currents, bit for bit."""
     from magrun.protocol import load_protocol
-    from magrun.recorded import read_ticks
+    from magrun.recordings.reader import read_ticks
     from magrun.runner import run_protocol
 
     path = tmp_path / "c.yaml"

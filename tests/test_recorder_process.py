@@ -23,8 +23,8 @@ from magrun.realtime import (
     loop_placement,
     pin_thread,
 )
-from magrun.recorder_process import ProcessRecorder
-from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.recordings.process import ProcessRecorder
+from magrun.recordings.writer import RecordingSetup, TrialRecorder
 from magrun.records import ControllerStatus, Tick
 from magrun.tracking.camera import Camera
 
@@ -122,7 +122,7 @@ CHILD = """
 import os, sys, numpy as np
 sys.path.insert(0, "tests")
 from test_recorder_process import _setup, _ticks
-from magrun.recorder_process import ProcessRecorder
+from magrun.recordings.process import ProcessRecorder
 rec = ProcessRecorder(sys.argv[1], _setup(image_format="raw")).start()
 for tick in _ticks(40, [np.full((64, 64), 7, np.uint8)]):
     rec.log(tick)

@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from rerun.chunk import RrdReader
 
-from magrun.recording import RecordingSetup, TrialRecorder, raw_image, raw_image_bytes
+from magrun.recordings.writer import RecordingSetup, TrialRecorder, raw_image, raw_image_bytes
 from magrun.records import ControllerStatus, Tick
 from magrun.tracking.camera import Camera
 
@@ -112,7 +112,7 @@ def test_raw_image_bytes_parse_to_the_protobuf_message(shape: tuple[int, ...]) -
 def test_recorder_shortens_the_gil_switch_interval_only_while_it_runs(tmp_path: Path) -> None:
     import sys
 
-    from magrun.recording import SWITCH_INTERVAL_S
+    from magrun.recordings.writer import SWITCH_INTERVAL_S
 
     before = sys.getswitchinterval()
     setup = RecordingSetup(trial={"method": "x"}, channel_names=tuple("abcdefgh"))
@@ -138,7 +138,7 @@ def test_jpeg_frames_reach_the_rrd_in_columns(tmp_path: Path) -> None:
 def test_the_blueprint_plots_each_error_in_its_own_unit() -> None:
     """Position (mm) and orientation (°) errors in separate time-series views, currents and
     compute time in theirs; the workspace view always, the camera view with a camera."""
-    from magrun.rerun_log import blueprint
+    from magrun.recordings.rerun_log import blueprint
 
     for with_camera in (True, False):
         spatial, series = blueprint(with_camera).root_container.contents

@@ -11,9 +11,9 @@ from click.testing import CliRunner
 from mcap.reader import make_reader
 
 from magrun.cli import cli
-from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.recordings.recover import recover
+from magrun.recordings.writer import RecordingSetup, TrialRecorder
 from magrun.records import ControllerStatus, Tick
-from magrun.recover import recover
 
 STATUS = ControllerStatus(0.001, 1, True, "", "0")
 DT = 1 / 25.5

@@ -428,7 +428,7 @@ def test_resimulation_refuses_what_it_cannot_rerun(
     """Exit 2 with the reason, no traceback: a hardware recording, --method without
     --resimulate, --resimulate with --model, and an output over the recording."""
     import magrun.resimulate as resim
-    from magrun.recorded import read_ticks
+    from magrun.recordings.reader import read_ticks
 
     def from_hardware(path: Path):  # type: ignore[no-untyped-def]
         rec = read_ticks(path)

@@ -14,14 +14,14 @@ from rerun.chunk import RrdReader
 from test_recording import _record, _rrd_rows, _ticks
 
 from magrun.cli import cli
-from magrun.recording import RecordingSetup
-from magrun.rerun_log import (
+from magrun.recordings.rerun_log import (
     FRAME_MARGIN,
     WORKSPACE_ROOTS,
     blueprint,
     recording_name,
     rrd_from_mcap,
 )
+from magrun.recordings.writer import RecordingSetup
 from magrun.tracking.camera import Camera
 
 HALF = 0.05  # m, the workspace square's half-width in these tests

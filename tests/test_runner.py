@@ -21,7 +21,7 @@ from magrun.cli import cli
 from magrun.control.methods import make_controller
 from magrun.loop import run_trial
 from magrun.protocol import load_protocol
-from magrun.recording import TOPICS, RecordingSetup, TrialRecorder, yaw_of
+from magrun.recordings.writer import TOPICS, RecordingSetup, TrialRecorder, yaw_of
 from magrun.records import Tick
 from magrun.rigs.sim import SimRig
 from magrun.runner import RunError, local_executor, ray_executor, run_protocol

@@ -49,8 +49,8 @@ def bench_recorder(
 ) -> dict[str, Any]:
     """Camera frames into MCAP at ``fps``, interleaved with poses and currents, and the cost
     of logging to the control tick, for each writer (``thread``: the writer on a thread of
-    the loop's process, :class:`~magrun.recording.TrialRecorder`; ``process``: in a child
-    process, :class:`~magrun.recorder_process.ProcessRecorder`).
+    the loop's process, :class:`~magrun.recordings.writer.TrialRecorder`; ``process``: in a child
+    process, :class:`~magrun.recordings.process.ProcessRecorder`).
 
     Phase 1 (throughput), per writer: a producer paced at ``fps`` hands the recorder a tick
     per frame (a raw ``width`` × ``height`` mono8 frame, six poses, eight currents, a status)
@@ -75,8 +75,8 @@ def bench_recorder(
 
     from magrun.control.methods import make_controller
     from magrun.realtime import cpu_split, describe_scheduling, loop_placement
-    from magrun.recorder_process import ProcessRecorder
-    from magrun.recording import RecordingSetup, TrialRecorder
+    from magrun.recordings.process import ProcessRecorder
+    from magrun.recordings.writer import RecordingSetup, TrialRecorder
     from magrun.records import ControllerStatus, Tick
 
     frames = _camera_frames(width, height, 8)

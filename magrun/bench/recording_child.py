@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from magrun.recorder_process import ProcessRecorder
-from magrun.recording import RecordingSetup, TrialRecorder
+from magrun.recordings.process import ProcessRecorder
+from magrun.recordings.writer import RecordingSetup, TrialRecorder
 from magrun.records import ControllerStatus, Tick
 
 

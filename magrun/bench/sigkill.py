@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from magrun.bench.machine import machine
-from magrun.recover import MCAP_MAGIC
+from magrun.recordings.recover import MCAP_MAGIC
 
 
 def _wait_for_footer(path: Any, timeout: float) -> None:
@@ -38,7 +38,7 @@ def bench_sigkill(
     per second of trial time) with the ``writer`` (``thread``: in that process, so the kill
     takes the writer too; ``process``: the writer is a child process, which survives the
     kill of the loop's process and finishes the file), kills it after a uniformly random
-    time in ``window`` s, then recovers the file (:func:`magrun.recover.recover`; for the
+    time in ``window`` s, then recovers the file (:func:`magrun.recordings.recover.recover`; for the
     process writer, once the writer has finished it, at most 10 s). Lost = ticks handed to
     the recorder (printed by the child before it died) minus ticks recovered, in ticks and
     in seconds of trial time; ``complete``: the file had its footer (no recovery needed).
@@ -49,7 +49,7 @@ def bench_sigkill(
     import tempfile
     from pathlib import Path
 
-    from magrun.recover import recover
+    from magrun.recordings.recover import recover
 
     rng = np.random.default_rng(seed)
     rows = []

@@ -79,7 +79,7 @@ def identify_cmd(
 
     from magrun.calibration import gains_file_text
     from magrun.identify import LAG_GRID, bench_timing, identify, robot_entry
-    from magrun.recorded import RecordingReadError
+    from magrun.recordings.reader import RecordingReadError
     from magrun.replay import ReplayError
 
     if out.suffix.lower() not in (".yaml", ".yml"):

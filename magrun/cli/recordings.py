@@ -68,25 +68,24 @@ def view(recording: Path, save: Path | None, web: bool, port: int) -> None:
 
 def _check_mcap(path: Path) -> None:
     """An InputError naming ``path`` and the fix unless it is an indexed MCAP file."""
-    from mcap.reader import make_reader
-
     from analysis.load import RECOVER_HINT
-    from magrun.recover import is_mcap
+    from magrun.recordings.reader import has_summary
+    from magrun.recordings.recover import is_mcap
 
     if not is_mcap(path):
         raise InputError(f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)")
     try:
-        with path.open("rb") as fh:
-            summary = make_reader(fh).get_summary()
+        indexed = has_summary(path)
     except Exception as exc:  # mcap raises several types for damaged files
         raise InputError(f"{path}: cannot be read: {RECOVER_HINT} ({exc})") from exc
-    if summary is None:
+    if not indexed:
         raise InputError(f"{path}: no summary or index: {RECOVER_HINT}")
 
 
 def _mcap_to_rrd(mcap: Path, rrd: Path) -> None:
-    """The MCAP as an .rrd with the recorder's views (:func:`magrun.rerun_log.rrd_from_mcap`)."""
-    from magrun.rerun_log import rrd_from_mcap
+    """The MCAP as an .rrd with the recorder's views
+    (:func:`magrun.recordings.rerun_log.rrd_from_mcap`)."""
+    from magrun.recordings.rerun_log import rrd_from_mcap
 
     try:
         rrd_from_mcap(mcap, rrd)
@@ -108,7 +107,7 @@ def recover_cmd(src: Path, dst: Path, rrd: bool, overwrite: bool, as_json: bool)
     without --overwrite. Prints how many messages were recovered
     and how many bytes were not. Exit status 2 when SRC is not an MCAP file.
     """
-    from magrun.recover import recover
+    from magrun.recordings.recover import recover
 
     if dst.suffix.lower() != ".mcap":
         raise InputError(f"{dst}: the recovered file must be an .mcap")

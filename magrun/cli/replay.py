@@ -146,7 +146,7 @@ def _estimator_replay(
     web_port: int,
     as_json: bool,
 ) -> None:
-    from magrun.recorded import RecordingReadError
+    from magrun.recordings.reader import RecordingReadError
     from magrun.replay import ReplayError, replay_estimator, write_replay
 
     try:
@@ -202,7 +202,7 @@ def _model_replay(
     recording: Path, model: str, horizon: int, overrides: tuple[str, ...], as_json: bool
 ) -> None:
     from magrun.prediction import prediction_errors
-    from magrun.recorded import RecordingReadError
+    from magrun.recordings.reader import RecordingReadError
     from magrun.replay import ReplayError
 
     try:
@@ -231,7 +231,7 @@ def _resimulate(
     as_json: bool,
     lv: LiveView | None,
 ) -> None:
-    from magrun.recorded import RecordingReadError
+    from magrun.recordings.reader import RecordingReadError
     from magrun.replay import ReplayError
     from magrun.resimulate import resimulate
 

@@ -3,8 +3,8 @@
 ``magrun view`` opens a file in one (:func:`open_file`). ``magrun run`` and ``magrun replay``
 stream to one while they record (:func:`live_view`, options :func:`live_view_options`): the
 recorders send each trial to a gRPC URL (``rerun+http://HOST:PORT/proxy``) as well as to
-their files (:class:`magrun.rerun_log.RerunLog`), and the files are written the same whether
-a viewer is there, closes half-way or never answers.
+their files (:class:`magrun.recordings.rerun_log.RerunLog`), and the files are written the
+same whether a viewer is there, closes half-way or never answers.
 
 - ``--view``: a new viewer window (it stays open when the command ends);
 - ``--connect ADDR``: a viewer or gRPC server already running (``rerun``, ``rerun
@@ -151,7 +151,7 @@ def live_view(
     if connect is not None and web:
         raise InputError("--connect and --web exclude each other: one viewer at a time")
     if connect is not None:
-        from magrun.rerun_log import viewer_listening
+        from magrun.recordings.rerun_log import viewer_listening
 
         url = grpc_url(connect)
         if not viewer_listening(url):
@@ -196,7 +196,7 @@ def start_viewer(web: bool, web_port: int, instead: str) -> LiveView:
 
 
 def _wait_listening(process: subprocess.Popen[bytes], url: str, log: Any) -> None:
-    from magrun.rerun_log import viewer_listening
+    from magrun.recordings.rerun_log import viewer_listening
 
     deadline = time.monotonic() + START_TIMEOUT_S
     while not viewer_listening(url, timeout_s=0.5):

@@ -17,10 +17,10 @@ MCAP topic                        schema (protobuf)              Rerun entity
 method, condition values, seed, index, robot, software versions), ``protocol`` (the protocol
 as JSON), ``workspace`` (``boundaries``, m, and the square's ``half_width_m``, as JSON),
 ``view`` (the recording's id and name, the camera's pixel mapping: what
-:func:`~magrun.rerun_log.rrd_from_mcap` needs) and, at the end, ``recorder`` (ticks written,
-dropped, status). The ``.rrd`` (:mod:`magrun.rerun_log`) also carries ``/errors/*`` series
-and a blueprint: the camera view with paths overlaid, the workspace from above with its
-boundaries, and time series of currents and errors.
+:func:`~magrun.recordings.rerun_log.rrd_from_mcap` needs) and, at the end, ``recorder``
+(ticks written, dropped, status). The ``.rrd`` (:mod:`magrun.recordings.rerun_log`) also
+carries ``/errors/*`` series and a blueprint: the camera view with paths overlaid, the
+workspace from above with its boundaries, and time series of currents and errors.
 
 The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.records.Tick`; that
 only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
@@ -58,10 +58,10 @@ from mcap_protobuf.schema import register_schema
 from numpy.typing import NDArray
 
 from magrun.realtime import lower_priority, pin_thread
+from magrun.recordings.rerun_log import RerunLog, view_metadata
 from magrun.records import POSE_STREAMS, Tick, metadata_text
 from magrun.records import RecordingSetup as RecordingSetup  # re-exported: the recorder's API
 from magrun.records import yaw_of as yaw_of
-from magrun.rerun_log import RerunLog, view_metadata
 
 FloatArray = NDArray[np.float64]
 
@@ -196,7 +196,7 @@ _STOP = object()
 
 class Recorder(ABC):
     """What the loop and the runner use of a trial recorder, whichever writes the files
-    (:class:`TrialRecorder` on a thread, :class:`~magrun.recorder_process.ProcessRecorder`
+    (:class:`TrialRecorder` on a thread, :class:`~magrun.recordings.process.ProcessRecorder`
     in a child process): ``start``, ``log``, ``close``, ``stats`` and the two paths."""
 
     def __init__(
@@ -502,3 +502,55 @@ def raw_image_bytes(frame: NDArray[np.uint8], t_ns: int) -> bytes:
         if not n:
             break
     return b"".join((header, _RAW_DATA_TAG, bytes(length), pixels))
+
+
+def copy_with_poses(
+    src: Path, out: Path, poses: list[tuple[int, str, FloatArray]], name: str,
+    record: dict[str, str],
+) -> None:  # fmt: skip
+    """Copy the recording ``src`` to ``out`` with pose messages added (``poses``: (log time
+    ns, topic, pose), in time order, each at its time among the copied messages) and the
+    metadata record ``name`` set to ``record`` (a record of that name in ``src`` is not
+    copied), written to a temporary name and renamed when complete."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+    from mcap_protobuf.schema import register_schema
+
+    from magrun.recordings.recover import copy_channel
+
+    tmp = out.with_name(out.name + ".tmp")
+    with src.open("rb") as source, tmp.open("wb") as fh:
+        reader = make_reader(source)
+        header = reader.get_header()
+        writer = Writer(fh, compression=CompressionType.ZSTD)
+        writer.start(profile=header.profile, library=header.library)
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        own: dict[str, int] = {}
+
+        def add_pose(t_ns: int, topic: str, pose: FloatArray) -> None:
+            msg = pose_message(pose, t_ns)
+            if topic not in own:
+                own[topic] = writer.register_channel(
+                    topic=topic, message_encoding="protobuf",
+                    schema_id=register_schema(writer, type(msg)),
+                )  # fmt: skip
+            writer.add_message(own[topic], t_ns, msg.SerializeToString(), t_ns)
+
+        i = 0
+        for schema, channel, message in reader.iter_messages(log_time_order=True):
+            while i < len(poses) and poses[i][0] < message.log_time:
+                add_pose(*poses[i])
+                i += 1
+            writer.add_message(
+                copy_channel(writer, channel, schema, channel_ids, schema_ids),
+                message.log_time, message.data, message.publish_time, message.sequence,
+            )  # fmt: skip
+        for item in poses[i:]:
+            add_pose(*item)
+        for metadata in reader.iter_metadata():
+            if metadata.name != name:
+                writer.add_metadata(metadata.name, dict(metadata.metadata))
+        writer.add_metadata(name, record)
+        writer.finish()
+    tmp.replace(out)

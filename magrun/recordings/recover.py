@@ -2,7 +2,7 @@
 
 A recorder killed mid-trial (SIGKILL, power loss) leaves an MCAP file without its summary and
 index, ending inside a chunk. The recorder closes a chunk at least every second of trial time
-(:class:`magrun.recording.TrialRecorder`, ``flush_s``) and hands it to the operating system,
+(:class:`magrun.recordings.writer.TrialRecorder`, ``flush_s``) and hands it to the operating system,
 so everything up to the last closed chunk is on disk. :func:`recover` reads the file record by
 record (CRCs checked) until the first record that is cut off or damaged, and writes every
 schema, channel, message and metadata record it read, in order, to a new file that readers

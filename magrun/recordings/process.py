@@ -1,11 +1,11 @@
 """A trial recorder whose writer runs in its own process: logging costs the loop a copy.
 
-:class:`~magrun.recording.TrialRecorder` writes on a thread of the control loop's process. Its
-Python work (protobuf, MCAP chunking, Rerun's Arrow conversion) holds the GIL in slices, and a
-control tick that needs the GIL meanwhile waits: at 200 fps of 1280 × 1024 frames that added
-1–3 ms to the p99 tick time (BENCHMARKS.md, "Recorder"). :class:`ProcessRecorder` has the same
-interface (``start``, ``log``, ``close``, ``stats``, the two paths) and moves the writer,
-unchanged, into a child process::
+:class:`~magrun.recordings.writer.TrialRecorder` writes on a thread of the control loop's
+process. Its Python work (protobuf, MCAP chunking, Rerun's Arrow conversion) holds the GIL in
+slices, and a control tick that needs the GIL meanwhile waits: at 200 fps of 1280 × 1024
+frames that added 1–3 ms to the p99 tick time (BENCHMARKS.md, "Recorder").
+:class:`ProcessRecorder` has the same interface (``start``, ``log``, ``close``, ``stats``,
+the two paths) and moves the writer, unchanged, into a child process::
 
     loop process                                   writer process
     log(tick) ─► ring slot (shared memory):          ┌─► TrialRecorder (its thread writes
@@ -27,7 +27,7 @@ close, writes what it has, and finishes both files with status ``"interrupted"``
 lost that reached the ring.
 
 The child is started with the ``forkserver`` method, the server preloading
-:mod:`magrun.recording`, so that after the first trial in a process a recorder starts in
+:mod:`magrun.recordings.writer`, so that after the first trial in a process a recorder starts in
 milliseconds.
 """
 
@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from magrun.realtime import lower_priority, pin_thread
-from magrun.recording import Recorder, RecorderStats, RecordingSetup, TrialRecorder
+from magrun.recordings.writer import Recorder, RecorderStats, RecordingSetup, TrialRecorder
 from magrun.records import Tick
 
 #: bytes of each slot kept for the pickled tick (a tick without its frame is ~2 KB)
@@ -62,7 +62,7 @@ class ProcessRecorder(Recorder):
     Parameters
     ----------
     base, setup, flush_s
-        As :class:`~magrun.recording.TrialRecorder`'s.
+        As :class:`~magrun.recordings.writer.TrialRecorder`'s.
     slots : int
         Ticks the ring holds (default 256, as the thread writer's queue: 1.3 s at 200 fps;
         336 MB of shared memory with 1280 × 1024 mono8 frames, touched when it opens).
@@ -105,7 +105,7 @@ class ProcessRecorder(Recorder):
 
     def start(self) -> ProcessRecorder:
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["magrun.recording"])
+        ctx.set_forkserver_preload(["magrun.recordings.writer"])
         self._counters = SharedMemory(create=True, size=16)
         # [entries taken from the ring, ticks written]: written by the writer
         self._taken = np.ndarray((2,), np.int64, self._counters.buf)

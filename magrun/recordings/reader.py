@@ -1,6 +1,6 @@
 """A magrun MCAP recording read back for replay: its metadata and its ticks as arrays.
 
-:func:`read_ticks` decodes what :class:`~magrun.recording.TrialRecorder` wrote: every pose
+:func:`read_ticks` decodes what :class:`~magrun.recordings.writer.TrialRecorder` wrote: every pose
 stream, the applied currents and the controller's status, one row per control tick (a tick
 is its ``/coils/currents`` message; streams absent at a tick are NaN). Images are left out.
 ``analysis.load`` reads the same files into pandas for statistics; this reader serves the
@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.files import open_binary
+from magrun.recordings.recover import is_mcap
 from magrun.records import POSE_STREAMS, metadata_value, pose_of
-from magrun.recover import is_mcap
 
 FloatArray = NDArray[np.float64]
 
@@ -119,3 +119,44 @@ def read_ticks(path: str | Path) -> RecordedTrial:
         channel_names=names,
         compute_time=np.array([rows[t].get("compute_time", math.nan) for t in ticks]),
     )
+
+
+def message_counts(path: str | Path) -> dict[str, int] | None:
+    """Messages per topic from an MCAP file's summary; None where it has no summary or no
+    statistics (a file whose writer died: ``magrun recover``). A damaged file raises what
+    the mcap reader raises (several types)."""
+    from mcap.reader import make_reader
+
+    with Path(path).open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    if summary is None or summary.statistics is None:
+        return None
+    counts: dict[str, int] = {}
+    for channel_id, n in summary.statistics.channel_message_counts.items():
+        topic = summary.channels[channel_id].topic
+        counts[topic] = counts.get(topic, 0) + n
+    return counts
+
+
+def has_summary(path: str | Path) -> bool:
+    """Whether an MCAP file has a summary (its index); a damaged file raises what the mcap
+    reader raises."""
+    from mcap.reader import make_reader
+
+    with Path(path).open("rb") as fh:
+        return make_reader(fh).get_summary() is not None
+
+
+def raw_messages(path: str | Path, topics: tuple[str, ...]) -> list[tuple[str, int, bytes]]:
+    """The messages on ``topics`` as (topic, log time ns, serialised bytes), in log-time
+    order."""
+    from mcap.reader import make_reader
+
+    with Path(path).open("rb") as fh:
+        reader = make_reader(fh)
+        return [
+            (channel.topic, message.log_time, bytes(message.data))
+            for _s, channel, message in reader.iter_messages(
+                topics=list(topics), log_time_order=True
+            )
+        ]
