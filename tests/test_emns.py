@@ -332,7 +332,7 @@ def test_the_shipped_octomag_protocol_runs_its_quick_trials(tmp_path: Path) -> N
     # the model replayed on the recording is OctoMag's, as the trial's own prediction was:
     # the one-step error agrees with the trial's (its NMPC's prediction against the plant,
     # 6 µm here); the paper rig's maps (also 8 channels) gave 40 µm
-    from magrun.prediction import prediction_errors
+    from magrun.replay.model import prediction_errors
 
     (proposed,) = [e for e in manifest["trials"] if e["method"] == "proposed"]
     errors = prediction_errors(tmp_path / "octomag" / proposed["mcap"], "zernike")
@@ -346,9 +346,9 @@ def test_replay_and_identify_use_the_recordings_coil_system(tmp_path: Path) -> N
     loading them from the folder, not the paper rig's (which has 8 channels too). Recordings
     of two systems are refused together, naming both."""
     from magrun.field.lut import LookupTableFieldModel
-    from magrun.prediction import field_function, recorded_system
     from magrun.protocol import Protocol
-    from magrun.replay import ReplayError
+    from magrun.replay.common import ReplayError
+    from magrun.replay.model import field_function, recorded_system
 
     folder = ROOT / "systems" / "octomag"
     body = {

@@ -43,7 +43,7 @@ def _plant(path: Path) -> dict[str, dict[str, float]]:
 
 def test_identify_recovers_the_drawn_plant(perturbed: dict[str, Path], tmp_path: Path) -> None:
     """Fitted to the proposed method's trial, held out on Baseline 3's (same plant). What the
-    recordings determine (magrun/identify.py): the force factor, (moment factor × geometric
+    recordings determine (magrun/replay/identify.py): the force factor, (moment factor × geometric
     mean gain) / drag factor, to 3 % (1 % seen); each coil's gain over the gains' geometric
     mean to 1.5 % (0.5 % seen); the drawn gains are up to 10 % off the nominal, so this is
     far from the starting point. The fit lowers the prediction error on both trials."""

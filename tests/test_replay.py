@@ -17,7 +17,8 @@ from test_recording import _rrd_rows
 from analysis.load import read_recording
 from magrun.cli import cli
 from magrun.protocol import load_protocol
-from magrun.replay import replay_estimator, rms_errors, write_replay
+from magrun.replay.common import rms_errors
+from magrun.replay.estimator import replay_estimator, write_replay
 from magrun.yamlio import YamlModelError
 
 #: the tiny protocol as a 3 Hz, σ = 2 mm experiment of the proposed method and Baseline 3
@@ -257,7 +258,7 @@ def test_the_plants_own_field_predicts_an_exact_plant(exact_plant: Path) -> None
     field) predict one tick ahead to within 10 µm (what remains: the velocity from two
     recorded poses, the amplifiers' ramp), several times better than the Zernike fit of
     the same maps; the lookup table, bilinear on the plant's grid, is the plant's field."""
-    from magrun.prediction import prediction_errors
+    from magrun.replay.model import prediction_errors
 
     ref = prediction_errors(exact_plant, "reference", horizon=5)
     lut = prediction_errors(exact_plant, "lut", horizon=5)
@@ -275,7 +276,7 @@ def test_a_perturbed_plant_predicts_worse_and_its_draw_is_recorded(
     """The default plant draw (robot parameters and coil gains off the nominal) is in the
     recording's ``plant`` record, equal to the simulated rig's own draw for the trial's
     seed, and it costs the reference model accuracy."""
-    from magrun.prediction import prediction_errors
+    from magrun.replay.model import prediction_errors
     from magrun.rigs.sim import DEFAULT_PERTURBATION, SimRig
 
     path = recorded["proposed"]
@@ -299,7 +300,7 @@ def test_a_coil_calibration_predicts_a_plant_with_gain_errors(tmp_path: Path) ->
     controller.coil_gains=FILE``) as well as the exact plant (to 10 µm one tick ahead), and
     the error no longer grows with the horizon."""
     from magrun.calibration import gains_file_text
-    from magrun.prediction import prediction_errors
+    from magrun.replay.model import prediction_errors
 
     gains_only = (*EXACT_PLANT[:-1], "simulation.coil_gain_sigma=0.05")
     path = record_tiny(tmp_path / "rec", gains_only)["proposed"]
@@ -386,7 +387,7 @@ def test_an_unchanged_resimulation_reproduces_the_recording_byte_for_byte(
     """The recorded protocol and seed, run again (the tiny protocol declares its latency):
     every pose and current message equal in topic, log time and bytes, and the result says
     so."""
-    from magrun.resimulate import resimulate
+    from magrun.replay.resimulate import resimulate
 
     out = tmp_path / "again.mcap"
     result = resimulate(recorded["proposed"], out=out)
@@ -427,7 +428,7 @@ def test_resimulation_refuses_what_it_cannot_rerun(
 ) -> None:
     """Exit 2 with the reason, no traceback: a hardware recording, --method without
     --resimulate, --resimulate with --model, and an output over the recording."""
-    import magrun.resimulate as resim
+    import magrun.replay.resimulate as resim
     from magrun.recordings.reader import read_ticks
 
     def from_hardware(path: Path):  # type: ignore[no-untyped-def]

@@ -78,9 +78,9 @@ def identify_cmd(
     import yaml
 
     from magrun.calibration import gains_file_text
-    from magrun.identify import LAG_GRID, bench_timing, identify, robot_entry
     from magrun.recordings.reader import RecordingReadError
-    from magrun.replay import ReplayError
+    from magrun.replay.common import ReplayError
+    from magrun.replay.identify import LAG_GRID, bench_timing, identify, robot_entry
 
     if out.suffix.lower() not in (".yaml", ".yml"):
         raise InputError(f"--out {out}: the robots file must be .yaml")

@@ -147,7 +147,8 @@ def _estimator_replay(
     as_json: bool,
 ) -> None:
     from magrun.recordings.reader import RecordingReadError
-    from magrun.replay import ReplayError, replay_estimator, write_replay
+    from magrun.replay.common import ReplayError
+    from magrun.replay.estimator import replay_estimator, write_replay
 
     try:
         rec, result = replay_estimator(recording, overrides, estimator, label)
@@ -201,9 +202,9 @@ def _print_replay(
 def _model_replay(
     recording: Path, model: str, horizon: int, overrides: tuple[str, ...], as_json: bool
 ) -> None:
-    from magrun.prediction import prediction_errors
     from magrun.recordings.reader import RecordingReadError
-    from magrun.replay import ReplayError
+    from magrun.replay.common import ReplayError
+    from magrun.replay.model import prediction_errors
 
     try:
         result = prediction_errors(recording, model, horizon, overrides)
@@ -232,8 +233,8 @@ def _resimulate(
     lv: LiveView | None,
 ) -> None:
     from magrun.recordings.reader import RecordingReadError
-    from magrun.replay import ReplayError
-    from magrun.resimulate import resimulate
+    from magrun.replay.common import ReplayError
+    from magrun.replay.resimulate import resimulate
 
     if not _LABEL.fullmatch(label):
         raise InputError(f"--label {label!r}: use letters, digits, '_', '-' and '.' only")

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.recordings.reader import read_ticks
-from magrun.replay import ReplayError, trial_of
+from magrun.replay.common import ReplayError, trial_of
 from magrun.robot import exponential_substep
 from magrun.trial import RunError, coil_gains_of, system_models, system_of
 
@@ -132,7 +132,7 @@ class Segments:
 
 def segments_of(rec: Any, protocol: Any, horizon: int) -> Segments:
     """The :class:`Segments` of a recording (:class:`~magrun.recordings.reader.RecordedTrial`) made
-    under ``protocol``; raises :class:`~magrun.replay.ReplayError` if it has none."""
+    under ``protocol``; raises :class:`~magrun.replay.common.ReplayError` if it has none."""
     dt = 1.0 / protocol.controller.rate_hz
     latency = protocol.controller.latency
     lag = rec.compute_time if latency == "measured" else np.full(len(rec.t), float(latency))
@@ -196,7 +196,7 @@ def errors_of(seg: Segments, positions: FloatArray, headings: FloatArray) -> tup
 
 def recorded_system(protocols: Sequence[Protocol]) -> CoilSystem:
     """The coil system the recordings of ``protocols`` were made on (their ``system``: a
-    folder, or the paper's rig), loaded once; a :class:`~magrun.replay.ReplayError` where
+    folder, or the paper's rig), loaded once; a :class:`~magrun.replay.common.ReplayError` where
     they name different systems or the folder's description is bad."""
     systems = sorted({p.system or "the paper's rig" for p in protocols})
     if len(systems) != 1:
@@ -213,7 +213,7 @@ def prediction_errors(
     """The open-loop prediction error of ``model`` on the recording at ``path`` (module doc)
     at horizons 1 … ``horizon`` ticks. ``overrides``: ``--set`` protocol settings (e.g. the
     robot, or ``controller.coil_gains``: the model with a coil calibration). Raises
-    :class:`~magrun.replay.ReplayError` on what it cannot use."""
+    :class:`~magrun.replay.common.ReplayError` on what it cannot use."""
     if horizon < 1:
         raise ReplayError(f"--horizon must be at least 1, got {horizon}")
     rec = read_ticks(path)

@@ -1,7 +1,7 @@
 """System identification: the robot's and the coils' parameters fitted to recordings.
 
 :func:`identify` adjusts a few factors on the nominal robot and coils so that the open-loop
-predictions of :mod:`magrun.prediction` (from each recorded actual pose, under the recorded
+predictions of :mod:`magrun.replay.model` (from each recorded actual pose, under the recorded
 currents, 1 … K ticks ahead) match the recorded poses, by nonlinear least squares
 (``scipy.optimize.least_squares``). Residuals are position errors in mm and heading errors
 as the displacement of the robot's end (θ × half its length), in mm.
@@ -36,7 +36,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.prediction import (
+from magrun.recordings.reader import read_ticks
+from magrun.replay.common import ReplayError, trial_of
+from magrun.replay.model import (
     Segments,
     errors_of,
     field_function,
@@ -46,8 +48,6 @@ from magrun.prediction import (
     start_states,
     substep_each,
 )
-from magrun.recordings.reader import read_ticks
-from magrun.replay import ReplayError, trial_of
 
 FloatArray = NDArray[np.float64]
 
@@ -101,7 +101,7 @@ def identify(
     currents make the robot look weaker than it is (a 15 ms lag halved the fitted force
     factor in a test), so give the lag where there is one.
 
-    Raises :class:`~magrun.replay.ReplayError` when the recordings cannot be used together
+    Raises :class:`~magrun.replay.common.ReplayError` when the recordings cannot be used together
     (different robots or coil channels) or have no ticks to predict from.
     """
     from scipy.optimize import least_squares
@@ -328,7 +328,7 @@ def rollout_driven(
     seg: Segments, driven: list[FloatArray], robot: Any, fld: Any, gains: FloatArray | None,
     part: int = 5,
 ) -> tuple[FloatArray, FloatArray]:  # fmt: skip
-    """:func:`magrun.prediction.rollout` with each tick's driven currents sub-step by
+    """:func:`magrun.replay.model.rollout` with each tick's driven currents sub-step by
     sub-step (:func:`driven_currents`): the field is read every ``part`` sub-steps at the
     mean current of those sub-steps."""
     starts = seg.starts

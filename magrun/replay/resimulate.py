@@ -24,7 +24,7 @@ from typing import Any
 from magrun.control import METHODS
 from magrun.protocol import condition_slug
 from magrun.recordings.reader import read_ticks
-from magrun.replay import ReplayError, rms_errors, trial_of
+from magrun.replay.common import ReplayError, rms_errors, trial_of
 from magrun.runner import execute_trial
 
 #: the topics whose messages a faithful rerun reproduces exactly
