@@ -125,10 +125,7 @@ def message_counts(path: str | Path) -> dict[str, int] | None:
     """Messages per topic from an MCAP file's summary; None where it has no summary or no
     statistics (a file whose writer died: ``magrun recover``). A damaged file raises what
     the mcap reader raises (several types)."""
-    from mcap.reader import make_reader
-
-    with Path(path).open("rb") as fh:
-        summary = make_reader(fh).get_summary()
+    summary = _summary(path)
     if summary is None or summary.statistics is None:
         return None
     counts: dict[str, int] = {}
@@ -141,10 +138,15 @@ def message_counts(path: str | Path) -> dict[str, int] | None:
 def has_summary(path: str | Path) -> bool:
     """Whether an MCAP file has a summary (its index); a damaged file raises what the mcap
     reader raises."""
+    return _summary(path) is not None
+
+
+def _summary(path: str | Path) -> Any:
+    """An MCAP file's summary (mcap's ``Summary``), or None where it has none."""
     from mcap.reader import make_reader
 
     with Path(path).open("rb") as fh:
-        return make_reader(fh).get_summary() is not None
+        return make_reader(fh).get_summary()
 
 
 def raw_messages(path: str | Path, topics: tuple[str, ...]) -> list[tuple[str, int, bytes]]:

@@ -170,7 +170,6 @@ def write_replay(
         extra.append((t_ns, replay_topic(result.label, "estimated"), result.estimated[k]))
         if np.all(np.isfinite(result.predicted[k])):
             extra.append((t_ns, replay_topic(result.label, "predicted"), result.predicted[k]))
-    # a replay of a replay keeps only its own "replay" record
     record = {
         "source": rec.path.name,
         "kind": "estimator",
@@ -179,6 +178,7 @@ def write_replay(
         "settings": json.dumps(list(result.settings)),
         **{k: json.dumps(v) for k, v in result.errors.items()},
     }
+    # a replay of a replay keeps only its own "replay" record (the copy drops the source's)
     copy_with_poses(rec.path, out, extra, "replay", record)
     rrd = out.with_suffix(".rrd")
     rrd_from_mcap(out, rrd, live_view=view)
