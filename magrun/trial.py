@@ -29,8 +29,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from functools import cache
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -40,13 +38,12 @@ from magrun.calibration import gains_in_order, load_coil_gains
 from magrun.control import NMPC_METHODS
 from magrun.control.base import Controller
 from magrun.control.estimation import KalmanConfig, steady_position_sigma
-from magrun.control.methods import ControlConfig, make_controller, shipped_models
+from magrun.control.methods import ControlConfig, make_controller
 from magrun.control.nmpc import NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig
 from magrun.field.coils import CoilFileError, CoilSystem
-from magrun.field.lut import LookupTableFieldModel
 from magrun.field.model import PlanarFieldModel
-from magrun.field.zernike import ZernikeFieldModel
+from magrun.field.system import System, load_system
 from magrun.freespace import FreeSpace
 from magrun.loop import PoseTracker, TrialLog, run_trial
 from magrun.protocol import (
@@ -162,14 +159,15 @@ def make_rig(
     seed: int,
     camera: bool,
     watchdog_s: float = 0.1,
-    coils: CoilSystem | None = None,
+    system: System | None = None,
     simulation: SimulationSettings | None = None,
     flow_path: FloatArray | None = None,
 ) -> Any:
-    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``coils``: default
-    the paper's; its plant drawn around ``robot`` as ``simulation`` says, default the
-    protocol's defaults; its flow along ``flow_path`` where given) or the hardware rig a
-    :class:`HardwareSpec` names (not yet connected)."""
+    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``system``'s
+    coils and maps: default the paper's; its plant drawn around ``robot`` as ``simulation``
+    says, default the protocol's defaults; its flow along ``flow_path`` where given) or the
+    hardware rig a :class:`HardwareSpec` names (not yet connected)."""
+    system = system or load_system(None)
     if isinstance(kind, HardwareSpec):
         from magrun.rigs.cameras import camera_source
         from magrun.rigs.drivers import load_driver
@@ -179,8 +177,7 @@ def make_rig(
         driver = load_driver(kind.driver, kind.secret)
         source = camera_source(kind.camera, driver)
         # the currents' limits are the system's, never the rig's (HardwareRig.connect)
-        system = coils if coils is not None else CoilSystem.load()
-        return HardwareRig(driver, source, Camera(), robot, system, watchdog_s)
+        return HardwareRig(driver, source, Camera(), robot, system.coils, watchdog_s)
     if kind == "hardware":
         raise RunError(NO_DRIVER)
     from magrun.rigs.sim import Perturbation, SimRig
@@ -193,8 +190,8 @@ def make_rig(
     )  # fmt: skip
     return SimRig.default(
         robot=robot, walls=walls, perturbation=perturbation, seed=seed,
-        camera=CameraConfig() if camera else None, coils=coils, plant_seed=sim.plant_seed,
-        imperfections=sim.imperfections(), flow_path=flow_path,
+        camera=CameraConfig() if camera else None, coils=system.coils, grid=system.plant_maps,
+        plant_seed=sim.plant_seed, imperfections=sim.imperfections(), flow_path=flow_path,
     )  # fmt: skip
 
 
@@ -343,11 +340,12 @@ class ControllerParts:
     planned: Trajectory
 
 
-def system_of(protocol: Protocol) -> CoilSystem:
-    """The protocol's coil system (``system``: a folder), or the paper's rig; a
-    :class:`RunError` naming the file where the folder's description is bad."""
+def system_of(protocol: Protocol) -> System:
+    """The protocol's coil system (``system``: a folder), or the paper's rig, with its models
+    (:func:`magrun.field.system.load_system`); a :class:`RunError` naming the file where the
+    folder's description is bad."""
     try:
-        return CoilSystem.load(protocol.system)
+        return load_system(protocol.system)
     except CoilFileError as exc:
         raise RunError(str(exc)) from exc
 
@@ -363,13 +361,12 @@ def check_system(protocol: Protocol, feasibility: bool = True) -> CoilSystem:
     - with ``feasibility``, the coils' reach: at every pose of the trajectory, currents
       within the limits must give the robot its velocity and turn rate while holding a
       heading (:func:`magrun.field.capability.trajectory_capability`)."""
-    from magrun.field.grid import ChannelGrid
-
-    coils = system_of(protocol)
+    system = system_of(protocol)
+    coils = system.coils
     if coils.folder is not None:
         try:
-            ChannelGrid.load(coils)
-            system_models(coils.folder)
+            system.plant_maps  # noqa: B018 (read and checked here, before a run folder)
+            system.models  # noqa: B018
         except ValueError as exc:
             raise RunError(str(exc)) from exc
     try:
@@ -444,7 +441,7 @@ def _remembered(
     if key not in cache:
         if len(cache) >= 32:
             cache.clear()
-        cache[key] = compute(system_models(coils.folder)[1])
+        cache[key] = compute(load_system(coils.folder).models[1])
     return cache[key]
 
 
@@ -662,14 +659,6 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
     )
 
 
-@cache
-def system_models(folder: Path | None) -> tuple[ZernikeFieldModel, LookupTableFieldModel]:
-    """A system folder's Zernike and lookup-table models (loaded once per process)."""
-    if folder is None:
-        return shipped_models()
-    return ZernikeFieldModel.load(system=folder), LookupTableFieldModel.load(system=folder)
-
-
 def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
     """The protocol's coil calibration (``controller.coil_gains``) in ``coils``' channel
     order, or None; a :class:`RunError` when the file's channels are not the coils'."""
@@ -684,13 +673,15 @@ def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
 
 def build_controller(
     trial: Trial,
-    coils: CoilSystem | None = None,
+    system: System | None = None,
     tune: Callable[[ControlConfig], ControlConfig] | None = None,
 ) -> ControllerParts:
-    """``trial``'s scene, robot, tuning, free space and controller: the part of
-    :func:`assemble` that needs no rig (the replay builds only this)."""
+    """``trial``'s scene, robot, tuning, free space and controller, on ``system`` (default:
+    the protocol's): the part of :func:`assemble` that needs no rig (the replay builds only
+    this)."""
     protocol = trial.protocol
-    coils = coils or system_of(protocol)
+    system = system or system_of(protocol)
+    coils = system.coils
     scene = build_scene(protocol, coils)
     robot = protocol.robot_params()
     config = control_config(protocol.controller, robot, trial.condition)
@@ -722,7 +713,7 @@ def build_controller(
     free_space = free_space_of(scene, robot)
     gains = coil_gains_of(protocol, coils)
     t0 = time.perf_counter()
-    zernike, lut = system_models(coils.folder) if coils.is_map_system else (None, None)
+    zernike, lut = system.models  # the system's own, with its limits
     controller = make_controller(
         trial.method, robot, config, zernike=zernike, lut=lut, free_space=free_space,
         coil_gains=gains,
@@ -743,13 +734,14 @@ def assemble(
     from magrun.tracking.tracker import Tracker
 
     protocol = trial.protocol
-    coils = system_of(protocol)  # the simulated rig's and the scene's; the models carry their own
-    parts = build_controller(trial, coils, tune)
+    system = system_of(protocol)  # the rig's, the scene's and the controller's
+    coils = system.coils
+    parts = build_controller(trial, system, tune)
     scene, robot, controller = parts.scene, parts.robot, parts.controller
     simulated = rig == "sim"
     the_rig = make_rig(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
-        protocol.safety.stall_timeout_ms * 1e-3, coils, protocol.simulation, scene.channel,
+        protocol.safety.stall_timeout_ms * 1e-3, system, protocol.simulation, scene.channel,
     )  # fmt: skip
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver

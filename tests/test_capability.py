@@ -35,6 +35,7 @@ from magrun.field.capability import (
 )
 from magrun.field.coils import CoilSystem
 from magrun.field.mpem import import_mpem
+from magrun.field.system import load_system
 from magrun.protocol import load_protocol
 from magrun.robot import drag_matrix, load_robot, magnetic_wrench
 from magrun.scene import s_trajectory
@@ -43,7 +44,6 @@ from magrun.trial import (
     PAPER_SPEED_FACTOR,
     RunError,
     check_system,
-    system_models,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,7 +101,7 @@ def test_the_currents_give_the_asked_wrench_on_a_three_coil_system(three: Path) 
     workspace, the LP's currents, put through the model and the robot's wrench, give the
     force s D(θ) v, the torque d_r ω and the field along the moment ≥ B_min, within limits."""
     coils = CoilSystem.load(three)
-    model = system_models(three)[1]
+    model = load_system(three).models[1]
     limits = np.full(3, 10.0)
     rng = np.random.default_rng(7)
     checked = 0
@@ -130,7 +130,7 @@ def test_the_currents_give_the_asked_wrench_on_a_three_coil_system(three: Path) 
 
 
 def test_a_slow_s_is_within_reach_and_a_fast_one_is_not(three: Path) -> None:
-    model = system_models(three)[1]
+    model = load_system(three).models[1]
     slow = s_trajectory(size=0.012, speed=1e-3)
     assert trajectory_capability(model, ROBOT, 10.0, slow, samples=80).feasible
     fast = s_trajectory(size=0.012, speed=0.5)
@@ -201,7 +201,7 @@ def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
     where the reference's own heading does not; elsewhere it is zero."""
     (tmp_path / "tri.yaml").write_text(TRI)
     folder = import_mpem(tmp_path / "tri.yaml", tmp_path / "tri", 0.0, (0.0, 0.0), 10e-3)
-    model = system_models(folder)[1]
+    model = load_system(folder).models[1]
     reference = s_trajectory(size=12e-3, speed=1e-3)
     held = held_reference(model, ROBOT, 10.0, reference)
     planned, offsets = held.trajectory, held.offsets
@@ -239,7 +239,7 @@ def test_a_reference_the_coils_hold_is_planned_as_it_is() -> None:
     from magrun.trial import build_scene
 
     reference = build_scene(protocol, coils).reference
-    model = system_models(coils.folder)[1]
+    model = load_system(coils.folder).models[1]
     held = held_reference(model, load_robot("magnet"), coils.max_current, reference)
     assert held.trajectory is reference
     assert not held.offsets.any()
@@ -376,7 +376,7 @@ def tri_nmpc(tmp_path_factory: pytest.TempPathFactory) -> Any:
     base = tmp_path_factory.mktemp("tri")
     (base / "tri.yaml").write_text(TRI)
     folder = import_mpem(base / "tri.yaml", base / "tri", 0.0, (0.0, 0.0), 10e-3)
-    zernike, lut = system_models(folder)
+    zernike, lut = load_system(folder).models
     held = held_reference(lut, ROBOT, 10.0, s_trajectory(size=12e-3, speed=1e-3))
     assert held.offsets.any()
     config = nmpc_tuning(NMPCConfig(), ControllerSettings(), True, held.median_factor)
@@ -512,7 +512,7 @@ def test_the_coils_typical_wrench_is_homogeneous_in_the_limits() -> None:
     from magrun.trial import typical_wrench
 
     robot = replace(load_robot("magnet"), min_aligned_field=0.0)
-    paper = system_models(None)[1].coils
+    paper = load_system(None).models[1].coils
     stronger = cast(CoilSystem, SimpleNamespace(folder=None, max_current=2 * paper.max_current))
     force, torque = typical_wrench(paper, robot)
     assert force > 0
@@ -535,7 +535,7 @@ def test_the_baselines_wrench_follows_the_robots_drag_within_the_coils_reach() -
 
     auto, base = ControllerSettings(), ControlConfig()
     mpc, alloc = base.linear_mpc, base.allocation
-    paper = system_models(None)[1].coils
+    paper = load_system(None).models[1].coils
     magnet = load_robot("magnet")
     assert two_layer_tuning(base, auto, paper, magnet) == base
 

@@ -346,6 +346,7 @@ def test_replay_and_identify_use_the_recordings_coil_system(tmp_path: Path) -> N
     loading them from the folder, not the paper rig's (which has 8 channels too). Recordings
     of two systems are refused together, naming both."""
     from magrun.field.lut import LookupTableFieldModel
+    from magrun.field.system import load_system
     from magrun.protocol import Protocol
     from magrun.replay.common import ReplayError
     from magrun.replay.model import field_function, recorded_system
@@ -357,18 +358,18 @@ def test_replay_and_identify_use_the_recordings_coil_system(tmp_path: Path) -> N
     }  # fmt: skip
     octomag = Protocol.model_validate({**body, "system": str(folder)})
     paper = Protocol.model_validate(body)
-    coils = recorded_system([octomag, octomag])
-    assert coils.folder == folder
+    system = recorded_system([octomag, octomag])
+    assert system.folder == folder
     assert recorded_system([paper]).folder is None
     rng = np.random.default_rng(0)
     positions = rng.uniform(-8e-3, 8e-3, (5, 2))
-    currents = rng.uniform(-5, 5, (5, coils.n_channels))
-    shipped = CoilSystem.load()
+    currents = rng.uniform(-5, 5, (5, system.coils.n_channels))
+    shipped = load_system(None)
     for name, own in (
         ("zernike", ZernikeFieldModel.load(system=folder)),
         ("lut", LookupTableFieldModel.load(system=folder)),
     ):
-        B, G = field_function(name, coils)(positions, currents)
+        B, G = field_function(name, system)(positions, currents)
         want_B, want_G = own.field_and_gradient(positions, currents)
         assert_allclose(B, want_B.T, rtol=1e-12, atol=1e-15)
         assert_allclose(G, want_G.transpose(1, 2, 0), rtol=1e-12, atol=1e-15)
@@ -492,6 +493,61 @@ def test_import_comsol_writes_a_system_folder_a_protocol_runs_on(tmp_path: Path)
     assert b == pytest.approx(a, rel=0.1)
 
 
+def test_a_paper_kind_folder_plans_and_simulates_on_its_own_maps_fit_and_limits(
+    tmp_path: Path,
+) -> None:
+    """A folder of the paper's kind (what ``import-comsol --out`` writes) holding maps twice
+    the shipped ones, their fit (the shipped fit doubled: a least-squares fit is linear in
+    the data) and a 12 A limit: every method plans with the folder's model and limit (not the
+    shipped rig's and its 30 A), and the simulated plant runs on the folder's maps. Exact:
+    the doubled coefficients and tables are the same floating-point operations, times 2."""
+    import json
+    from importlib import resources
+
+    from magrun.control import METHODS
+    from magrun.field.grid import ChannelGrid
+    from magrun.field.reference import FieldMap
+    from magrun.protocol import Protocol
+    from magrun.trial import assemble, build_controller, single_trial
+
+    folder = tmp_path / "doubled"
+    folder.mkdir()
+    data = resources.files("magrun.field") / "data"
+    text = (data / "coils.yaml").read_text(encoding="utf-8")
+    assert "max_current_a: 30.0" in text
+    (folder / "system.yaml").write_text(text.replace("max_current_a: 30.0", "max_current_a: 12.0"))
+    shipped_maps = ReferenceMaps.load()
+    doubled = {n: FieldMap(m.x, m.y, 2 * m.B, 2 * m.dB) for n, m in shipped_maps.maps.items()}
+    ReferenceMaps(doubled, shipped_maps.meta).save(folder / "reference_maps.npz")
+    doc = json.loads((data / "zernike_model.json").read_text(encoding="utf-8"))
+    for fit in doc["coil_types"].values():
+        fit["bx"] = [2 * v for v in fit["bx"]]
+        fit["by"] = [2 * v for v in fit["by"]]
+    (folder / "zernike_model.json").write_text(json.dumps(doc))
+
+    protocol = Protocol.model_validate(
+        {"name": "p", "system": str(folder), "methods": list(METHODS),
+         "trajectory": {"kind": "s_curve", "size_mm": 20, "speed_mm_s": 2}}
+    )  # fmt: skip
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-0.02, 0.02, (6, 2))
+    currents = rng.uniform(-10, 10, (6, 8))
+    shipped_zernike = ZernikeFieldModel.load()
+    shipped_lut = LookupTableFieldModel.load()
+    for method in METHODS:
+        controller = build_controller(single_trial(protocol, method, 0)).controller
+        assert np.all(controller.max_current == 12.0), method
+        model = controller.planner.model
+        shipped = shipped_zernike if isinstance(model, ZernikeFieldModel) else shipped_lut
+        for got, want in zip(
+            model.field_and_gradient(p, currents), shipped.field_and_gradient(p, currents),
+            strict=True,
+        ):  # fmt: skip
+            assert_allclose(got, 2 * want, rtol=1e-12, atol=0), method
+    rig = assemble(single_trial(protocol, "baseline1", 0)).rig
+    assert_allclose(rig.grid.table, 2 * ChannelGrid.load().table, rtol=1e-12, atol=0)
+
+
 def _limited_octomag(tmp_path: Path) -> Path:
     """OctoMag with Coil_0's slew limited to 0.5 A/s and Coil_1's current to 0.2 A (the
     others: 10 A, 200 A/s; the micro robot's S takes up to ~0.45 A and 0.06–0.18 A per tick
@@ -576,3 +632,24 @@ def test_channel_limits_must_name_channels(tmp_path: Path) -> None:
 
     with pytest.raises(CoilFileError, match=r"system.yaml:\d+: channel_limits: .*Coil_9"):
         CoilSystem.load(folder)
+
+
+def test_a_system_is_loaded_once_and_again_when_its_files_change(tmp_path: Path) -> None:
+    """load_system: one object per folder while its files stay as they are (its models built
+    once), a fresh one when a file changes (here the limit: 10 A -> 7.5 A)."""
+    import shutil
+
+    from magrun.field.system import load_system
+
+    folder = tmp_path / "octomag"
+    shutil.copytree(ROOT / "systems" / "octomag", folder)
+    first = load_system(folder)
+    assert load_system(folder) is first
+    assert first.models is first.models
+    assert float(np.max(first.coils.max_current)) == 10.0
+    text = (folder / "system.yaml").read_text()
+    (folder / "system.yaml").write_text(text.replace("max_current_a: 10.0", "max_current_a: 7.5"))
+    second = load_system(folder)
+    assert second is not first
+    assert float(np.max(second.coils.max_current)) == 7.5
+    assert float(np.max(second.models[0].coils.max_current)) == 7.5

@@ -59,3 +59,20 @@ def test_every_module_but_recordings_is_kept_from_the_recording_libraries() -> N
     assert {"mcap", "rerun"} <= set(contract["forbidden_modules"])
     modules = {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
     assert modules - set(contract["source_modules"]) == {"magrun.recordings"}
+
+
+def test_every_module_but_field_asks_field_system_for_a_systems_models() -> None:
+    """The contract that a coil system's models and maps come only from
+    ``magrun.field.system`` names its sources one by one, as the recording libraries' does:
+    every module or package of magrun but ``field`` itself must be on it."""
+    import pkgutil
+    import tomllib
+
+    import magrun
+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    contracts = config["tool"]["importlinter"]["contracts"]
+    (contract,) = [c for c in contracts if c["name"].startswith("A coil system's models")]
+    assert {"magrun.field.zernike", "magrun.field.lut"} <= set(contract["forbidden_modules"])
+    modules = {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
+    assert modules - set(contract["source_modules"]) == {"magrun.field"}

@@ -95,13 +95,13 @@ def bench_nmpc(
         "machine": machine(),
         "variants": {},
     }
-    from magrun.field.coils import CoilSystem
+    from magrun.field.system import load_system
 
     runs: list[tuple[str, str, str, Any]] = [
         (name, *NMPC_VARIANTS[name], protocol) for name in variants
     ]
     for folder in systems:
-        coils = CoilSystem.load(folder)
+        coils = load_system(folder).coils
         runs.append(
             (
                 f"proposed@{Path(folder).name}", "proposed", "rti",

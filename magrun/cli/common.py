@@ -77,10 +77,11 @@ def fresh_outputs(outputs: list[Path], inputs: list[Path], overwrite: bool) -> N
 
 def load_coils(path: Path | None) -> Any:
     """The coil system of a coil-system YAML (default: the paper's), or an InputError."""
-    from magrun.field.coils import CoilFileError, CoilSystem
+    from magrun.field.coils import CoilFileError
+    from magrun.field.system import load_system
 
     try:
-        return CoilSystem.load(path)
+        return load_system(path).coils
     except CoilFileError as exc:
         raise InputError(str(exc)) from exc
 

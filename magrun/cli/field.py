@@ -376,8 +376,8 @@ def field_check(
     its min_aligned_field, no torque), per position and heading; with --speed-mm-s, whether
     that speed is reachable everywhere ("feasible")."""
     from magrun.field.capability import workspace_capability
+    from magrun.field.system import load_system
     from magrun.robot import load_robot
-    from magrun.trial import system_models
     from magrun.yamlio import YamlModelError
 
     if out is not None and out.suffix.lower() not in {".png", ".pdf", ".svg"}:
@@ -385,7 +385,7 @@ def field_check(
     coils = load_coils(system_dir)
     try:
         params = load_robot(robot, robots_file)
-        model = system_models(coils.folder)[1]
+        model = load_system(coils.folder).models[1]
     except (KeyError, YamlModelError, ValueError) as exc:
         raise InputError(str(exc.args[0]) if isinstance(exc, KeyError) else str(exc)) from exc
     speed = None if speed_mm_s is None else speed_mm_s * 1e-3

@@ -18,7 +18,6 @@ baseline5    NMPC on currents              lookup table           Kalman filter
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from functools import cache
 
 from numpy.typing import ArrayLike
 
@@ -33,9 +32,8 @@ from magrun.control.estimation import (
 )
 from magrun.control.nmpc import NMPC, NMPCConfig
 from magrun.control.two_layer import LinearMPCConfig, LinearMPCPlanner, PIDConfig, PIDPlanner
-from magrun.field.lut import LookupTableFieldModel
 from magrun.field.model import CalibratedFieldModel, PlanarFieldModel
-from magrun.field.zernike import ZernikeFieldModel
+from magrun.field.system import shipped_models
 from magrun.freespace import FreeSpace
 from magrun.robot import RobotParams, load_robot
 
@@ -56,13 +54,6 @@ class ControlConfig:
     #: s: the integral action's time constant (:class:`~magrun.control.base.Controller`), for
     #: the methods with a Kalman filter (it slows down with the filter's uncertainty); 0: off
     integral_time: float = 0.0
-
-
-@cache
-def shipped_models() -> tuple[ZernikeFieldModel, LookupTableFieldModel]:
-    """The shipped Zernike and lookup-table models (loaded once per process)."""
-    zernike = ZernikeFieldModel.load()
-    return zernike, LookupTableFieldModel(zernike.coils, LookupTableFieldModel.load().reference)
 
 
 def make_controller(

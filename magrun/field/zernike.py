@@ -400,7 +400,7 @@ class ZernikeFieldModel(PlanarFieldModel):
         writes again with other options).
         """
         if system is not None:
-            return cls._of_system(CoilSystem.load(system))
+            return cls.of_system(CoilSystem.load(system))
         path = Path(path) if path is not None else default_model_path()
         try:
             doc = safe_json(read_text_file(path), "")
@@ -428,7 +428,9 @@ class ZernikeFieldModel(PlanarFieldModel):
         return cls(coils, fits)
 
     @classmethod
-    def _of_system(cls, coils: CoilSystem) -> ZernikeFieldModel:
+    def of_system(cls, coils: CoilSystem) -> ZernikeFieldModel:
+        """The model fitted to a system's folder (``zernike_model.json``), with ``coils``
+        and so their limits; the shipped model where ``coils`` has no folder."""
         if coils.folder is None:
             return cls.load()
         saved = coils.folder / SYSTEM_MODEL_FILE

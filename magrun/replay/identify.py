@@ -114,8 +114,9 @@ def identify(
         name: [(rec, trial_of(rec).protocol) for rec in map(read_ticks, paths)]
         for name, paths in (("train", train), ("test", test))
     }
-    coils = recorded_system([p for pairs in recorded.values() for _, p in pairs])
-    fld = field_function(model, coils)
+    system = recorded_system([p for pairs in recorded.values() for _, p in pairs])
+    coils = system.coils
+    fld = field_function(model, system)
     sets: dict[str, list[Segments]] = {"train": [], "test": []}
     driven: dict[int, list[FloatArray]] = {}
     robots: set[tuple[str, str | None]] = set()
@@ -385,8 +386,9 @@ def bench_timing(
     heading = float(np.sqrt(np.mean(th[th <= 5 * 1.4826 * np.median(th)] ** 2)))
     outliers = float(np.mean(np.sqrt(d2) > 5 * max(per_axis, 1e-9) * math.sqrt(2)))
     protocols = [trial_of(rec).protocol for rec in recs]
-    coils = recorded_system(protocols)
-    fld = field_function(model, coils)
+    system = recorded_system(protocols)
+    coils = system.coils
+    fld = field_function(model, system)
     robot = protocols[0].robot_params().scaled(moment=force_factor)
     g = None if gains is None else np.array([gains[c] for c in coils.channel_names])
     segs = [segments_of(rec, p, 1) for rec, p in zip(recs, protocols, strict=True)]

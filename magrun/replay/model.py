@@ -36,13 +36,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from magrun.field.system import System
 from magrun.recordings.reader import read_ticks
 from magrun.replay.common import ReplayError, trial_of
 from magrun.robot import exponential_substep
-from magrun.trial import RunError, coil_gains_of, system_models, system_of
+from magrun.trial import RunError, coil_gains_of, system_of
 
 if TYPE_CHECKING:
-    from magrun.field.coils import CoilSystem
     from magrun.protocol import Protocol
 
 FloatArray = NDArray[np.float64]
@@ -82,11 +82,11 @@ def _wrap(a: Any) -> Any:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def field_function(model: str, coils: CoilSystem) -> Any:
+def field_function(model: str, system: System) -> Any:
     """``f(positions (n, 2), currents (n, C)) -> (B, G)``, with ``B[k]`` and ``G[k][l]``
-    arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``coils``."""
+    arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``system``."""
     if model in ("zernike", "lut"):
-        zernike, lut = system_models(coils.folder)
+        zernike, lut = system.models
         planar = zernike if model == "zernike" else lut
 
         def analytic(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
@@ -95,9 +95,7 @@ def field_function(model: str, coils: CoilSystem) -> Any:
 
         return analytic
     if model == "reference":
-        from magrun.field.grid import ChannelGrid
-
-        grid = ChannelGrid.load(coils)
+        grid = system.plant_maps
 
         def gridded(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
             rows = np.stack(
@@ -194,9 +192,9 @@ def errors_of(seg: Segments, positions: FloatArray, headings: FloatArray) -> tup
     return pos, ang
 
 
-def recorded_system(protocols: Sequence[Protocol]) -> CoilSystem:
+def recorded_system(protocols: Sequence[Protocol]) -> System:
     """The coil system the recordings of ``protocols`` were made on (their ``system``: a
-    folder, or the paper's rig), loaded once; a :class:`~magrun.replay.common.ReplayError` where
+    folder, or the paper's rig) with its models; a :class:`~magrun.replay.common.ReplayError` where
     they name different systems or the folder's description is bad."""
     systems = sorted({p.system or "the paper's rig" for p in protocols})
     if len(systems) != 1:
@@ -218,7 +216,8 @@ def prediction_errors(
         raise ReplayError(f"--horizon must be at least 1, got {horizon}")
     rec = read_ticks(path)
     protocol = trial_of(rec, overrides).protocol
-    coils = recorded_system([protocol])
+    system = recorded_system([protocol])
+    coils = system.coils
     if rec.currents.shape[1] != coils.n_channels:
         raise ReplayError(
             f"{rec.path}: {rec.currents.shape[1]} current channels recorded, the coil system "
@@ -230,7 +229,7 @@ def prediction_errors(
         raise ReplayError(str(exc)) from exc
     seg = segments_of(rec, protocol, horizon)
     t0 = time.perf_counter()
-    fld = field_function(model, coils)
+    fld = field_function(model, system)
     positions, headings = rollout(seg, protocol.robot_params(), fld, gains)
     pos, ang = errors_of(seg, positions, headings)
     return PredictionErrors(

@@ -220,19 +220,21 @@ class SimRig(Rig):
         seed: int = 0,
         camera: CameraConfig | None = None,
         coils: CoilSystem | None = None,
+        grid: ChannelGrid | None = None,
         plant_seed: int | None = None,
         imperfections: Imperfections = IDEAL,
         flow_path: FloatArray | None = None,
     ) -> SimRig:
         """The paper's rig with the shipped reference maps, or the system ``coils`` with its
-        folder's maps (``robot``: a robot of robots.yaml or its parameters; ``plant_seed``,
-        ``imperfections``, ``flow_path``: see the class)."""
+        folder's maps (``grid``: those maps gridded, where the caller has them: see
+        :class:`magrun.field.system.System`; ``robot``: a robot of robots.yaml or its
+        parameters; ``plant_seed``, ``imperfections``, ``flow_path``: see the class)."""
         coils = coils or CoilSystem.load()
         params = load_robot(robot) if isinstance(robot, str) else robot
+        grid = grid if grid is not None else ChannelGrid.load(coils)
         return cls(
-            coils, ChannelGrid.load(coils), params, walls, perturbation, seed,
-            camera=camera, plant_seed=plant_seed, imperfections=imperfections,
-            flow_path=flow_path,
+            coils, grid, params, walls, perturbation, seed, camera=camera,
+            plant_seed=plant_seed, imperfections=imperfections, flow_path=flow_path,
         )  # fmt: skip
 
     def reset(self, pose: ArrayLike) -> None:
