@@ -25,7 +25,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,20 +33,12 @@ from numpy.typing import NDArray
 from magrun.angles import wrap_angle
 from magrun.control.base import Controller
 from magrun.records import ControllerStatus, Tick
-from magrun.rigs.base import Rig
+from magrun.rigs.base import PoseTracker, Rig
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory
 
 FloatArray = NDArray[np.float64]
 Feedback = Callable[[float, FloatArray | None], FloatArray | None]
-
-
-class PoseTracker(Protocol):
-    """What the loop needs of a camera tracker (:class:`magrun.tracking.tracker.Tracker`)."""
-
-    def reset(self) -> None: ...
-
-    def __call__(self, frame: NDArray[np.uint8]) -> FloatArray | None: ...
 
 
 def perfect_feedback(t: float, pose: FloatArray | None) -> FloatArray | None:

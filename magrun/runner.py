@@ -77,31 +77,6 @@ def _torch_threads(n: int) -> Iterator[None]:
         torch.set_num_threads(before)
 
 
-#: the simulated plant's parameters recorded per trial (RobotParams fields, SI)
-PLANT_FIELDS = (
-    "mass", "inertia", "drag_parallel", "drag_perpendicular", "drag_rotation", "moment",
-)  # fmt: skip
-
-
-def plant_record(rig: Any) -> dict[str, str]:
-    """The MCAP ``plant`` record of a simulated rig: the trial's drawn robot parameters (SI),
-    the nominal ones, each channel's coil gain, and on a plant with imperfections their
-    settings (SI, :class:`~magrun.rigs.plant.Imperfections`) and per-plant draws (each coil's
-    placement error, the moment's misalignment); values JSON."""
-    true, nominal = rig.robot, rig.nominal_robot
-    record = {
-        "robot": json.dumps({f: getattr(true, f) for f in PLANT_FIELDS}),
-        "nominal_robot": json.dumps({f: getattr(nominal, f) for f in PLANT_FIELDS}),
-        "coil_gains": json.dumps(
-            dict(zip(rig.channel_names, np.asarray(rig.coil_gains).tolist(), strict=True))
-        ),
-    }
-    if not rig.imperfections.ideal:  # a bench's imperfections: the settings (SI) and draws
-        record["imperfections"] = json.dumps(rig.imperfections.as_dict())
-        record["draw"] = json.dumps(rig.plant_draw.record(tuple(rig.channel_names)))
-    return record
-
-
 def execute_trial(
     trial: Trial,
     out: str | Path,
@@ -164,7 +139,7 @@ def execute_trial(
             compression=protocol.recording.compression,
             recording_id=f"{trial.relpath}@{trial.seed}",
             name=f"{trial.relpath} (seed {trial.seed})",
-            extra_metadata={"plant": plant_record(the_rig)} if sim else {},
+            extra_metadata={"plant": the_rig.plant_record()} if the_rig.simulated else {},
             live_view=view,
         )
         writer = protocol.recording.writer
@@ -228,7 +203,7 @@ def execute_trial(
             warnings=warnings,
         )
         if not sim:
-            entry["hardware"] = the_rig.report()
+            entry["hardware"] = the_rig.report()  # a real rig's link statistics
             entry["loop_scheduling"] = scheduling
     except Exception as exc:
         entry.update(status="failed", error=f"{type(exc).__name__}: {exc}")

@@ -55,7 +55,7 @@ from magrun.protocol import (
     condition_slug,
 )
 from magrun.records import Tick
-from magrun.rigs.plant import ImperfectTracker
+from magrun.rigs.base import Rig
 from magrun.robot import RobotParams, load_robot
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
@@ -162,7 +162,7 @@ def make_rig(
     system: System | None = None,
     simulation: SimulationSettings | None = None,
     flow_path: FloatArray | None = None,
-) -> Any:
+) -> Rig:
     """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``system``'s
     coils and maps: default the paper's; its plant drawn around ``robot`` as ``simulation``
     says, default the protocol's defaults; its flow along ``flow_path`` where given) or the
@@ -278,7 +278,7 @@ class TrialParts:
     free_space: FreeSpace
     config: ControlConfig
     controller: Controller
-    rig: Any  # a Rig: SimRig, or HardwareRig (connected)
+    rig: Rig  # SimRig, or HardwareRig (connected)
     tracker: PoseTracker | None  # the UNet Tracker; None: the rig's own poses, or the exact one
     feedback: FluoroscopyMimic
     safety: SafetyLayer
@@ -320,7 +320,7 @@ class TrialParts:
             horizon=self.horizon, duration=self.duration, progress=progress,
             tracker=self.tracker, on_tick=on_tick,
             frame_due=self.feedback.due if fluoroscopy_frames else None,
-            latency=protocol.controller.latency if self.simulated else 0.0,
+            latency=self.rig.emulated_latency(protocol.controller.latency),
             stop=stop, safety=self.safety,
         )  # fmt: skip
 
@@ -731,7 +731,6 @@ def assemble(
     """Build ``trial``'s parts on ``rig`` (a hardware rig is connected here and disconnected
     again if a later part fails). ``tune`` adjusts the controller's configuration before the
     controller is built (the benchmarks pick a solver with it)."""
-    from magrun.tracking.tracker import Tracker
 
     protocol = trial.protocol
     system = system_of(protocol)  # the rig's, the scene's and the controller's
@@ -754,13 +753,7 @@ def assemble(
             )
         # in simulation the loop tracks the rendered frames; a hardware rig tracks its own
         # camera (its observations' poses), the loop's feedback derives from them
-        tracker: PoseTracker | None = (
-            Tracker.default(the_rig.camera, the_rig.nominal_robot)
-            if simulated and the_rig.camera
-            else None
-        )
-        if tracker is not None and the_rig.tracking_errors is not None:
-            tracker = ImperfectTracker(tracker, the_rig.tracking_errors)  # a bench's pipeline
+        tracker = the_rig.frame_tracker()
         condition = trial.condition
         feedback = FluoroscopyMimic(
             condition.rate_hz, condition.noise_position_m, condition.noise_heading_rad,

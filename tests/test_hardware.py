@@ -354,3 +354,45 @@ def test_an_idle_client_does_not_hold_the_slot() -> None:
             driver.close()
         finally:
             idle.close()
+
+
+def test_both_rigs_give_what_the_assembly_and_the_runner_read(emulator) -> None:
+    """The Rig interface's contract, for the simulated rig and the real one (here behind the
+    emulator), each made by ``make_rig`` as a trial's assembly makes it: channels and limits,
+    the nominal robot and the camera; the simulated rig emulates the declared latency, runs
+    the UNet on its frames and records its plant; the real one has a latency of its own,
+    tracks in its own ``observe``, records no plant and reports its link."""
+    from magrun.rigs.base import Rig
+    from magrun.robot import load_robot
+    from magrun.trial import make_rig
+
+    robot = load_robot("magnet")
+    host, port = emulator.address
+    sim = make_rig("sim", robot, None, seed=1, camera=True)
+    real = make_rig(HardwareSpec(driver=f"tcp://{host}:{port}"), robot, None, 1, camera=True)
+    for rig in (sim, real):
+        assert isinstance(rig, Rig)
+        assert rig.nominal_robot == robot
+        assert rig.camera is not None
+    assert sim.simulated and not real.simulated
+    assert sim.emulated_latency(0.005) == 0.005
+    assert sim.emulated_latency("measured") == "measured"
+    assert real.emulated_latency(0.005) == 0.0
+    tracker = sim.frame_tracker()
+    assert tracker is not None
+    assert make_rig("sim", robot, None, seed=1, camera=False).frame_tracker() is None
+    assert real.frame_tracker() is None
+    record = sim.plant_record()
+    assert {"robot", "nominal_robot", "coil_gains"} <= set(record)
+    assert json.loads(record["nominal_robot"])["moment"] == robot.moment
+    assert set(json.loads(record["coil_gains"])) == set(sim.channel_names)
+    assert real.plant_record() == {}
+    assert sim.report() == {}
+    with real:
+        real.reset([0.0, 0.0, 0.0])
+        real.observe()
+        real.apply(np.zeros(len(real.channel_names)))
+        real.advance(0.04)
+        report = real.report()
+    assert {"latency_median_ms", "overrun_ticks", "dropped_frames"} <= set(report)
+    assert tuple(real.channel_names) == tuple(sim.channel_names)

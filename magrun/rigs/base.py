@@ -20,12 +20,24 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Literal, Protocol, Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+if TYPE_CHECKING:
+    from magrun.robot import RobotParams
+    from magrun.tracking.camera import Camera
+
 FloatArray = NDArray[np.float64]
+
+
+class PoseTracker(Protocol):
+    """What the loop needs of a camera tracker (:class:`magrun.tracking.tracker.Tracker`)."""
+
+    def reset(self) -> None: ...
+
+    def __call__(self, frame: NDArray[np.uint8]) -> FloatArray | None: ...
 
 
 @dataclass(frozen=True)
@@ -61,7 +73,11 @@ class Observation:
 
 
 class Rig(ABC):
-    """A coil rig: drives currents, reports the robot's pose."""
+    """A coil rig: drives currents, reports the robot's pose.
+
+    What the assembly, the loop and the runner read of a rig is declared here; a simulated
+    rig adds its plant (:class:`~magrun.rigs.sim.SimRig`), a real one its link's statistics.
+    """
 
     #: channel names in current-vector order
     channel_names: tuple[str, ...]
@@ -70,6 +86,36 @@ class Rig(ABC):
     #: s from the last observation to the rig's acknowledgement of the currents applied after
     #: it (a hardware rig measures it; NaN in simulation)
     last_latency: float = float("nan")
+    #: the robot as magrun knows it (robots.yaml): what the controller and the tracker assume
+    nominal_robot: RobotParams
+    #: the camera whose frames :meth:`observe` returns, with its calibration; None: no frames
+    camera: Camera | None = None
+    #: whether the plant is simulated: the loop then emulates the declared compute latency
+    #: (:meth:`emulated_latency`) and the recording holds the plant (:meth:`plant_record`)
+    simulated: bool = False
+
+    def emulated_latency(
+        self, declared: float | Literal["measured"]
+    ) -> float | Literal["measured"]:
+        """The compute latency the loop emulates (:func:`magrun.loop.run_trial`): a simulated
+        rig's, the protocol's ``declared`` one; a real rig has its own, so 0."""
+        return declared if self.simulated else 0.0
+
+    def frame_tracker(self) -> PoseTracker | None:
+        """The tracker the loop runs on this rig's camera frames; None where the rig reports
+        tracked poses itself (a real rig tracks its camera in :meth:`observe`) or has no
+        camera."""
+        return None
+
+    def plant_record(self) -> dict[str, str]:
+        """The recording's ``plant`` record (values JSON): a simulated plant's draws; a real
+        rig has none to give."""
+        return {}
+
+    def report(self) -> dict[str, float | int]:
+        """The rig's statistics for the manifest (a real rig: its link's latency, overruns,
+        dropped frames); none in simulation."""
+        return {}
 
     def connect(self) -> None:  # noqa: B027 - optional hook, a no-op in simulation
         """Acquire the hardware (no-op in simulation)."""

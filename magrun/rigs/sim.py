@@ -35,6 +35,7 @@ corners gathered once), which the tests compare with it.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -46,12 +47,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid, GridCells, HeldField
-from magrun.rigs.base import Observation, Rig
+from magrun.rigs.base import Observation, PoseTracker, Rig
 from magrun.rigs.plant import (
     EXPOSURE_SAMPLES,
     IDEAL,
     ImageArtifacts,
     Imperfections,
+    ImperfectTracker,
     OrnsteinUhlenbeck,
     PoseHistory,
     TrackingErrors,
@@ -98,6 +100,11 @@ class Perturbation:
 #: the default mismatch between the controllers' models and the simulated plant
 DEFAULT_PERTURBATION = Perturbation(mass=0.1, drag=0.1, moment=0.05, coil_gain=0.02)
 
+#: the simulated plant's parameters recorded per trial (RobotParams fields, SI)
+PLANT_FIELDS = (
+    "mass", "inertia", "drag_parallel", "drag_perpendicular", "drag_rotation", "moment",
+)  # fmt: skip
+
 
 class SimRig(Rig):
     """Simulated plant behind the :class:`Rig` interface.
@@ -132,6 +139,8 @@ class SimRig(Rig):
         A channel's centre line (m): the flow runs along it (its direction nearest the robot);
         default: the flow is a 2-D vector.
     """
+
+    simulated = True
 
     def __init__(
         self,
@@ -236,6 +245,37 @@ class SimRig(Rig):
             coils, grid, params, walls, perturbation, seed, camera=camera,
             plant_seed=plant_seed, imperfections=imperfections, flow_path=flow_path,
         )  # fmt: skip
+
+    def frame_tracker(self) -> PoseTracker | None:
+        """The UNet tracker on the rendered frames (:meth:`Tracker.default` for the nominal
+        robot), its poses through the bench's tracking errors where the plant has them; None
+        without a camera."""
+        if self.camera is None:
+            return None
+        from magrun.tracking.tracker import Tracker
+
+        tracker: PoseTracker = Tracker.default(self.camera, self.nominal_robot)
+        if self.tracking_errors is not None:
+            tracker = ImperfectTracker(tracker, self.tracking_errors)  # a bench's pipeline
+        return tracker
+
+    def plant_record(self) -> dict[str, str]:
+        """The MCAP ``plant`` record: the trial's drawn robot parameters (SI), the nominal
+        ones, each channel's coil gain, and on a plant with imperfections their settings (SI,
+        :class:`~magrun.rigs.plant.Imperfections`) and per-plant draws (each coil's placement
+        error, the moment's misalignment); values JSON."""
+        true, nominal = self.robot, self.nominal_robot
+        record = {
+            "robot": json.dumps({f: getattr(true, f) for f in PLANT_FIELDS}),
+            "nominal_robot": json.dumps({f: getattr(nominal, f) for f in PLANT_FIELDS}),
+            "coil_gains": json.dumps(
+                dict(zip(self.channel_names, np.asarray(self.coil_gains).tolist(), strict=True))
+            ),
+        }
+        if not self.imperfections.ideal:  # a bench's imperfections: the settings and draws
+            record["imperfections"] = json.dumps(self.imperfections.as_dict())
+            record["draw"] = json.dumps(self.plant_draw.record(tuple(self.channel_names)))
+        return record
 
     def reset(self, pose: ArrayLike) -> None:
         p = np.asarray(pose, dtype=np.float64)
