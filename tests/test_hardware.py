@@ -374,7 +374,8 @@ def test_both_rigs_give_what_the_assembly_and_the_runner_read(emulator) -> None:
         assert isinstance(rig, Rig)
         assert rig.nominal_robot == robot
         assert rig.camera is not None
-    assert sim.simulated and not real.simulated
+    assert sim.simulated
+    assert not real.simulated
     assert sim.emulated_latency(0.005) == 0.005
     assert sim.emulated_latency("measured") == "measured"
     assert real.emulated_latency(0.005) == 0.0

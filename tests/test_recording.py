@@ -151,3 +151,29 @@ def test_the_blueprint_plots_each_error_in_its_own_unit() -> None:
         }
         origins = [v.origin for v in spatial.contents]
         assert origins == (["/camera", "/workspace"] if with_camera else ["/workspace"])
+
+
+def test_the_declared_messages_are_the_recorded_schemas_and_the_documented_proto() -> None:
+    """magrun's own messages, declared once (magrun.recordings.schemas): the descriptor the
+    pool holds (what every MCAP schema record carries) is the declared one, field by field;
+    a message written and parsed again keeps every field; the .proto in docs/protocols.md is
+    the declaration's text."""
+    from google.protobuf import descriptor_pb2, descriptor_pool
+
+    from magrun.recordings import schemas
+    from magrun.recordings.writer import CoilCurrents, ControllerStatusMsg
+
+    held = descriptor_pb2.FileDescriptorProto()
+    descriptor_pool.Default().FindFileByName(schemas.FILE_NAME).CopyToProto(held)
+    assert held == schemas.file_descriptor()
+    for cls, name in ((CoilCurrents, "CoilCurrents"), (ControllerStatusMsg, "ControllerStatus")):
+        fields = [(f.name, f.number) for f in cls.DESCRIPTOR.fields]
+        assert fields == [(f[0], i) for i, f in enumerate(schemas.MESSAGES[name], start=1)]
+    msg = ControllerStatusMsg(method="proposed", solve_time=1.5e-3, iterations=3, success=True,
+                              latency=float("nan"), safety_stop="", prepare_time=2e-4)  # fmt: skip
+    back = ControllerStatusMsg.FromString(msg.SerializeToString())
+    assert (back.method, back.solve_time, back.iterations, back.prepare_time) == (
+        "proposed", 1.5e-3, 3, 2e-4,
+    )  # fmt: skip
+    docs = (Path(__file__).resolve().parents[1] / "docs" / "protocols.md").read_text()
+    assert "```proto\n" + schemas.proto_source() + "```" in docs

@@ -189,9 +189,9 @@ objective 15–155 times; under σ = 2 mm noise at 3 Hz (Baseline 1 on ``tri``) 
 steps raised it, by 1.5 times (median), and taking all those back cost accuracy (2.4–2.6 mm
 RMS became 2.2–10 mm, one robot of three lost), taking back the doubled ones did not. Where a
 descent finds no better plan and a QP fails, the tick keeps its plain step (a first tick
-fails, as before). Each checked tick evaluates the objective twice (about 0.2 ms each on three
-coils); ``nmpc_tuning`` turns it on where the planner follows held headings, as the damping,
-and the paper rig's trials are unchanged.
+fails, as before). Each checked tick evaluates the objective twice (its cost: BENCHMARKS.md);
+``nmpc_tuning`` turns it on where the planner follows held headings, as the damping, and the
+paper rig's trials are unchanged.
 
 The tick splits in two (:meth:`NMPC.prepare`, called by the control loop after the currents
 went out): the preparation linearises every stage around the shifted plan, stage 0 at the
@@ -1077,12 +1077,11 @@ class RTISolver(_Backend):
         }  # fmt: skip
         structure = {"h": H.sparsity(), "a": A.sparsity()}
         # HPIPM's "speed_abs" preset first (no iterative refinement, and no residuals
-        # evaluated at each interior-point iteration): ~30 % less time per QP than the default
-        # preset on QPs recorded under 2 mm noise (BENCHMARKS.md, with "speed"), and 14 % less
-        # than "speed" on the S-curve with heading-stable fields (0.60 against 0.70 ms, the
-        # same closed loop to 1e-4 mm); it can stop short (minimum step length) where the
-        # default one does not, e.g. started on an active wall bound, so a QP it fails is
-        # solved again with the default preset (``robust_retries`` counts them)
+        # evaluated at each interior-point iteration): faster per QP than the default and
+        # the "speed" presets with the same closed loop (BENCHMARKS.md); it can stop short
+        # (minimum step length) where the default one does not, e.g. started on an active
+        # wall bound, so a QP it fails is solved again with the default preset
+        # (``robust_retries`` counts them)
         fast = {**opts, "hpipm": {"mode": "speed_abs", **opts["hpipm"]}}
         self.qp_solver = ca.conic("rti_hpipm", "hpipm", structure, fast)
         self.qp_robust = ca.conic("rti_hpipm_robust", "hpipm", structure, opts)

@@ -9,8 +9,8 @@
   at the current heading (drag matrix D(θ₀) frozen over the horizon, exact zero-order-hold
   discretisation), inputs the force and torque within box limits. Its quadratic programme
   with box constraints is solved exactly as a bounded least-squares problem (condensed:
-  the states are eliminated) by :class:`magrun.control.qp.BoxLeastSquares` (DAQP, ~0.4 ms;
-  scipy's BVLS, the reference, took ~2.4 ms).
+  the states are eliminated) by :class:`magrun.control.qp.BoxLeastSquares` (DAQP; scipy's
+  BVLS is the reference; their times: BENCHMARKS.md).
 
 Both hand the first wrench to :func:`magrun.control.allocation.allocate` with their field model
 (lookup tables for B2 and B3, Zernike for B4). The predicted pose for the next tick is the

@@ -1,7 +1,7 @@
 """The simulated plant's field: dense world-frame tables of every channel, read bilinearly.
 
 A campaign integrates millions of 1 ms plant steps, so the plant must not evaluate a
-Biot–Savart sum (or even a SciPy interpolator, ~50 µs a call) per step. :class:`ChannelGrid`
+Biot–Savart sum (or even a SciPy interpolator) per step. :class:`ChannelGrid`
 rotates the reference ("FEA") maps into the workspace frame once, storing for every grid node
 and channel ``(Bx, By, ∂Bx/∂x, ∂Bx/∂y, ∂By/∂x, ∂By/∂y)`` per ampere, and
 :meth:`ChannelGrid.field` reads one point with a 2×2 gather: a few microseconds. The plant
@@ -126,8 +126,8 @@ class GridCells:
     The plant reads the field once per 1 ms sub-step and the robot stays in a cell for many
     of them, so each cell's corners are gathered once as an (n_channels, 24) table.
     :meth:`read` (any currents, e.g. while the amplifiers ramp) is then one small product and
-    a blend (~5 µs against ~12 µs for :meth:`ChannelGrid.unit` and the product); :meth:`held`
-    serves currents held over a control period faster still. Both equal
+    a blend, cheaper than :meth:`ChannelGrid.unit` and the product (BENCHMARKS.md);
+    :meth:`held` serves currents held over a control period faster still. Both equal
     ``currents @ grid.unit(x, y)`` to rounding (tests/test_sim.py).
     """
 
@@ -183,7 +183,7 @@ class HeldField:
 
     The currents stay the same over a control period: each cell's corners are contracted with
     them once, when the robot first enters the cell, so a read is a bilinear blend of six
-    numbers (~2 µs).
+    numbers.
     """
 
     def __init__(self, cells: GridCells, currents: FloatArray) -> None:

@@ -330,7 +330,7 @@ class ZernikeFieldModel(PlanarFieldModel):
     def unit_field_and_gradient(
         self, positions: ArrayLike
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """From :attr:`polynomial` (~20× faster than term by term at one point); the two agree
+        """From :attr:`polynomial` (faster than term by term: BENCHMARKS.md); the two agree
         to rounding (tests/test_nmpc.py). Term by term: :meth:`unit_field_and_gradient_terms`."""
         return self.polynomial.unit_field_and_gradient(positions)
 

@@ -51,7 +51,6 @@ import numpy as np
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, timestamp_pb2
 from google.protobuf.message import Message
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
@@ -59,6 +58,7 @@ from numpy.typing import NDArray
 
 from magrun.realtime import lower_priority, pin_thread
 from magrun.recordings.rerun_log import RerunLog, view_metadata
+from magrun.recordings.schemas import message_classes
 from magrun.records import POSE_STREAMS, Tick, metadata_text
 from magrun.records import RecordingSetup as RecordingSetup  # re-exported: the recorder's API
 from magrun.records import yaw_of as yaw_of
@@ -86,65 +86,9 @@ SWITCH_INTERVAL_S = 5e-4
 SOFTWARE = ("magrun", "numpy", "casadi", "torch", "rerun-sdk", "mcap", "protobuf")
 
 
-# --------------------------------------------------------------------------------------------
-# protobuf schemas of magrun's own messages (built at import: no generated code to keep)
-
-
-def _magrun_messages() -> tuple[type[Message], type[Message]]:
-    fd = descriptor_pb2.FileDescriptorProto(
-        name="magrun/messages.proto",
-        package="magrun",
-        syntax="proto3",
-        dependency=["google/protobuf/timestamp.proto"],
-    )
-    T = descriptor_pb2.FieldDescriptorProto
-    ts = (".google.protobuf.Timestamp", T.TYPE_MESSAGE)
-
-    def message(name: str, fields: list[tuple[str, Any, int]]) -> None:
-        m = fd.message_type.add(name=name)
-        for number, (fname, ftype, label) in enumerate(fields, start=1):
-            f = m.field.add(name=fname, number=number, label=label)
-            if isinstance(ftype, tuple):
-                f.type_name, f.type = ftype
-            else:
-                f.type = ftype
-
-    one, many = T.LABEL_OPTIONAL, T.LABEL_REPEATED
-    message(
-        "CoilCurrents",
-        [("timestamp", ts, one), ("names", T.TYPE_STRING, many), ("currents", T.TYPE_DOUBLE, many)],
-    )
-    message(
-        "ControllerStatus",
-        [
-            ("timestamp", ts, one),
-            ("method", T.TYPE_STRING, one),
-            ("solve_time", T.TYPE_DOUBLE, one),  # s
-            ("iterations", T.TYPE_UINT32, one),
-            ("success", T.TYPE_BOOL, one),
-            ("fallback", T.TYPE_STRING, one),
-            ("message", T.TYPE_STRING, one),
-            ("compute_time", T.TYPE_DOUBLE, one),  # s, tracking + feedback + controller
-            ("measurement", T.TYPE_BOOL, one),  # whether a fluoroscopy frame arrived
-            ("tracking_lost", T.TYPE_BOOL, one),
-            ("latency", T.TYPE_DOUBLE, one),  # s, frame to the rig's ack (hardware; else NaN)
-            ("safety_stop", T.TYPE_STRING, one),  # why the safety layer stops ("": running)
-            ("prepare_time", T.TYPE_DOUBLE, one),  # s, before the measurement (solve_time after)
-        ],
-    )
-    pool = descriptor_pool.Default()
-    timestamp_pb2.Timestamp  # noqa: B018 - the import registers timestamp.proto in the pool
-    try:
-        pool.FindFileByName(fd.name)
-    except KeyError:
-        pool.Add(fd)
-    return (
-        message_factory.GetMessageClass(pool.FindMessageTypeByName("magrun.CoilCurrents")),
-        message_factory.GetMessageClass(pool.FindMessageTypeByName("magrun.ControllerStatus")),
-    )
-
-
-CoilCurrents, ControllerStatusMsg = _magrun_messages()
+# magrun's own messages, declared in magrun.recordings.schemas
+_MESSAGES = message_classes()
+CoilCurrents, ControllerStatusMsg = _MESSAGES["CoilCurrents"], _MESSAGES["ControllerStatus"]
 
 
 def _stamp(msg: Any, t_ns: int) -> None:

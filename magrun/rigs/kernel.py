@@ -1,7 +1,8 @@
 """The simulated plant's sub-step loop compiled with Numba: the rig's inner loop in machine code.
 
-A campaign integrates ~14 million 1 ms plant sub-steps; in Python each costs 10–35 µs,
-compiled about 0.2 µs. :func:`free_substeps` runs :func:`magrun.robot.exponential_substep`
+A campaign integrates millions of 1 ms plant sub-steps, each a few dozen floating-point
+operations: in Python the interpreter's overhead dominates them (BENCHMARKS.md has the
+figures). :func:`free_substeps` runs :func:`magrun.robot.exponential_substep`
 (one field read per sub-step, as the Python plant's :func:`magrun.robot.discrete_step` calls
 do) on the field read bilinearly from the :class:`~magrun.field.grid.ChannelGrid`'s table,
 written out in scalar form. It stops after any sub-step that leaves the wall broad phase's

@@ -131,7 +131,7 @@ class SimRig(Rig):
     camera : CameraConfig, optional
         Render a camera frame with every observation; default: no frames.
     compiled : bool
-        Integrate with the Numba kernel (:mod:`magrun.rigs.kernel`, 10–20× faster); False runs
+        Integrate with the Numba kernel (:mod:`magrun.rigs.kernel`; BENCHMARKS.md); False runs
         the Python reference (:func:`magrun.robot.discrete_step`), which the tests compare.
     imperfections : Imperfections
         A real bench's imperfections (:mod:`magrun.rigs.plant`); default: none.
