@@ -253,10 +253,19 @@ def magnetic_wrench(
     return (fx, fy), mx * B[1] - my * B[0]
 
 
+def relaxation(tau: float, h: float) -> tuple[float, float]:
+    """The exact relaxation's constants over ``h`` for a time constant ``tau`` (s): the decay
+    e^(−h/τ) and its integral τ(1 − e^(−h/τ)). The one definition of the plant sub-step's
+    constants: :func:`_relax` here and the compiled plant (:mod:`magrun.rigs.kernel`) both
+    use it, so the two integrate with the same numbers."""
+    decay = math.exp(-h / tau)
+    return decay, tau * (1.0 - decay)
+
+
 def _relax(u0: Any, u_ss: Any, tau: float, h: float) -> tuple[Any, Any]:
     """Exact solution of u̇ = (u_ss − u)/τ over h: (u(h), ∫₀ʰ u dt)."""
-    decay = math.exp(-h / tau)
-    return u_ss + (u0 - u_ss) * decay, u_ss * h + (u0 - u_ss) * (tau * (1.0 - decay))
+    decay, integral = relaxation(tau, h)
+    return u_ss + (u0 - u_ss) * decay, u_ss * h + (u0 - u_ss) * integral
 
 
 def _substep_with_wrench(

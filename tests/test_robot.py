@@ -252,3 +252,19 @@ def test_aligned_step_is_smooth_at_zero_field_and_anti_aligned(magnet_robot) -> 
         nxt = aligned_substep(tuple(X[i] for i in range(6)), B, zero[1], r, 0.02, CASADI_OPS)
         J = ca.Function("J", [X], [ca.jacobian(ca.vertcat(*nxt), X)])
         assert np.all(np.isfinite(np.asarray(J(np.zeros(6)))))
+
+
+def test_the_relaxation_constants_are_the_decay_and_its_integral() -> None:
+    """robot.relaxation (the one definition the Python and the compiled plant share): the
+    decay e^(−h/τ) and ∫₀ʰ e^(−t/τ) dt, here by quadrature (scipy, 1e-12 relative), for time
+    constants from far below the sub-step to far above it."""
+    from scipy.integrate import quad
+
+    from magrun.robot import relaxation
+
+    for tau in (1e-5, 3e-4, 2e-3, 6e-3, 0.5):
+        for h in (1e-3, 5e-4, 0.02):
+            decay, integral = relaxation(tau, h)
+            assert decay == pytest.approx(np.exp(-h / tau), rel=1e-14, abs=1e-300)
+            want, _ = quad(lambda t, tau=tau: np.exp(-t / tau), 0.0, h, epsabs=0, epsrel=1e-13)
+            assert integral == pytest.approx(want, rel=1e-12)

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.compiled import cache_dir
+from magrun.robot import relaxation
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
 
@@ -36,6 +37,10 @@ FloatArray = NDArray[np.float64]
 ROBOT_FIELDS = ("moment", "drag_parallel", "drag_perpendicular", "drag_rotation", "mass", "inertia")
 
 
+#: :func:`magrun.robot.relaxation` compiled: the Python plant's constants, the same definition
+_relaxation = njit(cache=True, nogil=True, inline="always")(relaxation)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _decays(robot: FloatArray, h: float) -> tuple[float, ...]:
     """The exponential integrator's constants over a sub-step of ``h`` for the robot vector
@@ -43,9 +48,10 @@ def _decays(robot: FloatArray, h: float) -> tuple[float, ...]:
     d_a, d_b, d_r = robot[1], robot[2], robot[3]
     tau_a, tau_b, tau_r = robot[4] / d_a, robot[4] / d_b, robot[5] / d_r
     h2 = h / 2
-    ea, eb, er = math.exp(-h / tau_a), math.exp(-h / tau_b), math.exp(-h / tau_r)
-    ka, kb, kr = tau_a * (1.0 - ea), tau_b * (1.0 - eb), tau_r * (1.0 - er)
-    k2r = tau_r * (1.0 - math.exp(-h2 / tau_r))
+    ea, ka = _relaxation(tau_a, h)
+    eb, kb = _relaxation(tau_b, h)
+    er, kr = _relaxation(tau_r, h)
+    _, k2r = _relaxation(tau_r, h2)
     return h2, ea, eb, er, ka, kb, kr, k2r
 
 
