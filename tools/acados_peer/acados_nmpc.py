@@ -1,8 +1,8 @@
 """magrun's NMPC problem formulated in acados, as a magrun Planner (a peer for benchmarks).
 
 acados is not a dependency of magrun: this file needs an acados build and its Python
-interface (README.md beside it). The problem is magrun's RTI problem (magrun/control/nmpc/problem.py,
-scaled units), built from magrun's own CasADi functions:
+interface (README.md beside it). The problem is magrun's RTI problem
+(magrun/control/nmpc/problem.py, scaled units), built from magrun's own CasADi functions:
 
   state     s_k = (X_k scaled [mm, mm, rad, mm/s, mm/s, rad/s], u_{k-1} = I / I_max)   (14)
   input     v_k = u_k - u_{k-1}                                                         (8)
