@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -56,6 +56,7 @@ from magrun.protocol import (
 )
 from magrun.records import Tick
 from magrun.rigs.base import Rig
+from magrun.rigs.factory import HardwareRigConfig, HardwareSpec, SimRigConfig, make_rig
 from magrun.robot import RobotParams, load_robot
 from magrun.safety import SafetyConfig, SafetyLayer
 from magrun.scene import Trajectory, Walls
@@ -128,31 +129,12 @@ def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
 # the rig
 
 
-@dataclass(frozen=True)
-class HardwareSpec:
-    """The real rig (``--rig hardware``): a coil driver URL and a camera source.
-
-    ``driver``: ``tcp://host:port`` (the line protocol, :mod:`magrun.rigs.wire`) or a
-    plugin's scheme (:mod:`magrun.rigs.drivers`). ``camera``: ``driver`` (frames over the
-    driver's connection, as ``magrun rig-emulator`` serves them) or an OpenCV source (device
-    index, video file, GStreamer pipeline). Trials run one at a time, in real time.
-    """
-
-    driver: str
-    camera: str = "driver"
-    #: the rig's shared secret (magrun.rigs.wire, "Security model"), or None
-    secret: bytes | None = field(default=None, repr=False)
-
-    def __str__(self) -> str:
-        return "hardware"
-
-
 RigSpec = str | HardwareSpec
 
 NO_DRIVER = "--rig hardware needs --driver URL (e.g. tcp://127.0.0.1:5555)"
 
 
-def make_rig(
+def rig_config(
     kind: RigSpec,
     robot: RobotParams,
     walls: Walls | None,
@@ -162,36 +144,27 @@ def make_rig(
     system: System | None = None,
     simulation: SimulationSettings | None = None,
     flow_path: FloatArray | None = None,
-) -> Rig:
-    """The simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``system``'s
-    coils and maps: default the paper's; its plant drawn around ``robot`` as ``simulation``
-    says, default the protocol's defaults; its flow along ``flow_path`` where given) or the
-    hardware rig a :class:`HardwareSpec` names (not yet connected)."""
+) -> SimRigConfig | HardwareRigConfig:
+    """The rig's configuration (:func:`magrun.rigs.factory.make_rig` makes it): the
+    simulated rig (``"sim"``, seeded, with a camera if ``camera``, on ``system``'s coils and
+    maps: default the paper's; its plant drawn around ``robot`` as ``simulation`` says,
+    default the protocol's defaults; its flow along ``flow_path`` where given) or the
+    hardware rig a :class:`HardwareSpec` names."""
     system = system or load_system(None)
     if isinstance(kind, HardwareSpec):
-        from magrun.rigs.cameras import camera_source
-        from magrun.rigs.drivers import load_driver
-        from magrun.rigs.hardware import HardwareRig
-        from magrun.tracking.camera import Camera
-
-        driver = load_driver(kind.driver, kind.secret)
-        source = camera_source(kind.camera, driver)
-        # the currents' limits are the system's, never the rig's (HardwareRig.connect)
-        return HardwareRig(driver, source, Camera(), robot, system.coils, watchdog_s)
+        return HardwareRigConfig(kind, robot, system, watchdog_s)
     if kind == "hardware":
         raise RunError(NO_DRIVER)
-    from magrun.rigs.sim import Perturbation, SimRig
-    from magrun.tracking.camera import CameraConfig
+    from magrun.rigs.sim import Perturbation
 
     sim = simulation or SimulationSettings()
     perturbation = Perturbation(
         mass=sim.mass_sigma, drag=sim.drag_sigma, moment=sim.moment_sigma,
         coil_gain=sim.coil_gain_sigma,
     )  # fmt: skip
-    return SimRig.default(
-        robot=robot, walls=walls, perturbation=perturbation, seed=seed,
-        camera=CameraConfig() if camera else None, coils=system.coils, grid=system.plant_maps,
-        plant_seed=sim.plant_seed, imperfections=sim.imperfections(), flow_path=flow_path,
+    return SimRigConfig(
+        robot, system, seed, walls=walls, camera=camera, perturbation=perturbation,
+        imperfections=sim.imperfections(), plant_seed=sim.plant_seed, flow_path=flow_path,
     )  # fmt: skip
 
 
@@ -738,10 +711,11 @@ def assemble(
     parts = build_controller(trial, system, tune)
     scene, robot, controller = parts.scene, parts.robot, parts.controller
     simulated = rig == "sim"
-    the_rig = make_rig(
+    config = rig_config(
         rig, robot, scene.walls, trial.seed, protocol.feedback.camera,
         protocol.safety.stall_timeout_ms * 1e-3, system, protocol.simulation, scene.channel,
     )  # fmt: skip
+    the_rig = make_rig(config)
     if not simulated:
         the_rig.connect()  # the rig's channels and limits come from its coil driver
     try:

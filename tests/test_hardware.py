@@ -363,13 +363,15 @@ def test_both_rigs_give_what_the_assembly_and_the_runner_read(emulator) -> None:
     the UNet on its frames and records its plant; the real one has a latency of its own,
     tracks in its own ``observe``, records no plant and reports its link."""
     from magrun.rigs.base import Rig
+    from magrun.rigs.factory import make_rig
     from magrun.robot import load_robot
-    from magrun.trial import make_rig
+    from magrun.trial import rig_config
 
     robot = load_robot("magnet")
     host, port = emulator.address
-    sim = make_rig("sim", robot, None, seed=1, camera=True)
-    real = make_rig(HardwareSpec(driver=f"tcp://{host}:{port}"), robot, None, 1, camera=True)
+    sim = make_rig(rig_config("sim", robot, None, seed=1, camera=True))
+    spec = HardwareSpec(driver=f"tcp://{host}:{port}")
+    real = make_rig(rig_config(spec, robot, None, 1, camera=True))
     for rig in (sim, real):
         assert isinstance(rig, Rig)
         assert rig.nominal_robot == robot
@@ -381,7 +383,7 @@ def test_both_rigs_give_what_the_assembly_and_the_runner_read(emulator) -> None:
     assert real.emulated_latency(0.005) == 0.0
     tracker = sim.frame_tracker()
     assert tracker is not None
-    assert make_rig("sim", robot, None, seed=1, camera=False).frame_tracker() is None
+    assert make_rig(rig_config("sim", robot, None, seed=1, camera=False)).frame_tracker() is None
     assert real.frame_tracker() is None
     record = sim.plant_record()
     assert {"robot", "nominal_robot", "coil_gains"} <= set(record)
