@@ -498,3 +498,22 @@ def test_the_analysis_finds_replays_and_recomputes_their_errors(
     report = (figs / "report.md").read_text()
     assert "## Estimator replays" in report
     assert "| half | tiny | proposed | 0 |" in report
+
+
+@pytest.mark.parametrize("command", ["replay", "identify"])
+def test_a_truncated_recording_is_refused_with_the_way_to_recover_it(
+    recorded: dict[str, Path], tmp_path: Path, command: str
+) -> None:
+    """A recording cut short (a recorder that died) is refused with exit 2, naming the file
+    and ``magrun recover``, without a traceback, by the replay and by identification."""
+    data = recorded["proposed"].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 3 // 5])
+    args = [command, str(cut)] + (
+        ["--out", str(tmp_path / "robots.yaml")] if command == "identify" else []
+    )
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2, result.output
+    assert f"{cut}: cannot be read" in result.output
+    assert "magrun recover" in result.output
+    assert "Traceback" not in result.output

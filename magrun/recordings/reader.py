@@ -28,6 +28,13 @@ FloatArray = NDArray[np.float64]
 RECOVER = "magrun recover rebuilds it"
 
 
+#: what to do with a recording that cannot be read (analysis.load says the same)
+RECOVER_HINT = (
+    "the file is truncated or damaged (a recorder that died leaves it unindexed); "
+    "`magrun recover IN.mcap OUT.mcap` rebuilds a readable copy"
+)
+
+
 class RecordingReadError(ValueError):
     """A file that is not a readable, indexed magrun recording."""
 
@@ -99,7 +106,9 @@ def read_ticks(path: str | Path) -> RecordedTrial:
     except RecordingReadError:
         raise
     except Exception as exc:  # mcap raises several types for damaged files
-        raise RecordingReadError(f"{path}: cannot be read ({type(exc).__name__}: {exc})") from exc
+        raise RecordingReadError(
+            f"{path}: cannot be read: {RECOVER_HINT} ({type(exc).__name__}: {exc})"
+        ) from exc
     if "trial" not in meta:
         raise RecordingReadError(f"{path}: no `trial` metadata record: not a magrun recording")
     ticks = sorted(t for t, row in rows.items() if "currents" in row)
