@@ -44,10 +44,8 @@ def test_the_probe_sees_a_heavy_import() -> None:
     assert "casadi" in loaded_after("import magrun.control.methods")
 
 
-def test_every_module_but_recordings_is_kept_from_the_recording_libraries() -> None:
-    """The contract that only ``magrun.recordings`` imports mcap, the protobuf schemas and
-    rerun names its sources one by one: a new module or package of magrun must be on it
-    (or be recordings itself), or the contract would not see it."""
+def _contract(name_start: str) -> tuple[dict, set[str]]:
+    """The import-linter contract whose name starts so, and magrun's top-level modules."""
     import pkgutil
     import tomllib
 
@@ -55,9 +53,16 @@ def test_every_module_but_recordings_is_kept_from_the_recording_libraries() -> N
 
     config = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
     contracts = config["tool"]["importlinter"]["contracts"]
-    (contract,) = [c for c in contracts if c["name"].startswith("Only recordings imports")]
+    (contract,) = [c for c in contracts if c["name"].startswith(name_start)]
+    return contract, {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
+
+
+def test_every_module_but_recordings_is_kept_from_the_recording_libraries() -> None:
+    """The contract that only ``magrun.recordings`` imports mcap, the protobuf schemas and
+    rerun names its sources one by one: a new module or package of magrun must be on it
+    (or be recordings itself), or the contract would not see it."""
+    contract, modules = _contract("Only recordings imports")
     assert {"mcap", "rerun"} <= set(contract["forbidden_modules"])
-    modules = {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
     assert modules - set(contract["source_modules"]) == {"magrun.recordings"}
 
 
@@ -65,14 +70,6 @@ def test_every_module_but_field_asks_field_system_for_a_systems_models() -> None
     """The contract that a coil system's models and maps come only from
     ``magrun.field.system`` names its sources one by one, as the recording libraries' does:
     every module or package of magrun but ``field`` itself must be on it."""
-    import pkgutil
-    import tomllib
-
-    import magrun
-
-    config = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
-    contracts = config["tool"]["importlinter"]["contracts"]
-    (contract,) = [c for c in contracts if c["name"].startswith("A coil system's models")]
+    contract, modules = _contract("A coil system's models")
     assert {"magrun.field.zernike", "magrun.field.lut"} <= set(contract["forbidden_modules"])
-    modules = {f"magrun.{m.name}" for m in pkgutil.iter_modules(magrun.__path__)}
     assert modules - set(contract["source_modules"]) == {"magrun.field"}

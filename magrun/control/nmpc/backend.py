@@ -9,12 +9,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.control.nmpc.config import DAMPING_LEVELS, DESCENT_SLACK, NON_FINITE, NMPCConfig
+from magrun.control.nmpc.config import (
+    DAMPING_LEVELS,
+    DESCENT_SLACK,
+    NON_FINITE,
+    Iterate,
+    NMPCConfig,
+)
 
 FloatArray = NDArray[np.float64]
-#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
-#: (N, nu), scaled
-Iterate = tuple[FloatArray, FloatArray]
 
 
 @dataclass(frozen=True)

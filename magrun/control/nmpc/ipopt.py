@@ -12,13 +12,10 @@ from numpy.typing import NDArray
 
 from magrun.compiled import shared_library
 from magrun.control.nmpc.backend import Backend, SolveResult
-from magrun.control.nmpc.config import NP, NX, SUCCESS
+from magrun.control.nmpc.config import NP, NX, SUCCESS, Iterate
 from magrun.control.nmpc.problem import OCP
 
 FloatArray = NDArray[np.float64]
-#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
-#: (N, nu), scaled
-Iterate = tuple[FloatArray, FloatArray]
 
 
 class IpoptSolver(Backend):

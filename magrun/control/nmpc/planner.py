@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from magrun.control.base import Plan, Planner
 from magrun.control.nmpc.backend import Backend
-from magrun.control.nmpc.config import N_PLANES, NX, OUTSIDE_START, STATE_SCALE, NMPCConfig
+from magrun.control.nmpc.config import N_PLANES, NX, OUTSIDE_START, STATE_SCALE, Iterate, NMPCConfig
 from magrun.control.nmpc.ipopt import IpoptSolver
 from magrun.control.nmpc.problem import OCP, channel_field_scale
 from magrun.control.nmpc.rti import RTISolver
@@ -21,9 +21,6 @@ from magrun.records import ControllerStatus
 from magrun.robot import RobotParams
 
 FloatArray = NDArray[np.float64]
-#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
-#: (N, nu), scaled
-Iterate = tuple[FloatArray, FloatArray]
 
 
 class NMPC(Planner):

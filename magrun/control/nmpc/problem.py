@@ -24,9 +24,6 @@ if TYPE_CHECKING:
     from magrun.robot import RobotParams
 
 FloatArray = NDArray[np.float64]
-#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
-#: (N, nu), scaled
-Iterate = tuple[FloatArray, FloatArray]
 
 
 class Description(Protocol):

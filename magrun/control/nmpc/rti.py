@@ -13,14 +13,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.control.nmpc.backend import Backend, SolveResult, descend
-from magrun.control.nmpc.config import DIVERGING, KERNEL_MU0, NON_FINITE, NP, NX
+from magrun.control.nmpc.config import DIVERGING, KERNEL_MU0, NON_FINITE, NP, NX, Iterate
 from magrun.control.nmpc.problem import OCP
 from magrun.control.rti_kernel import RTIKernel, build_kernel
 
 FloatArray = NDArray[np.float64]
-#: a plan as the RTI iterates it: states s₁ … s_N (N, ns) and current steps v₀ … v_{N−1}
-#: (N, nu), scaled
-Iterate = tuple[FloatArray, FloatArray]
 
 
 class RTISolver(Backend):
