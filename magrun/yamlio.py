@@ -160,11 +160,29 @@ def _apply_overrides(data: Any, overrides: list[tuple[str, tuple[str, ...], Any]
     return data
 
 
+def _as_written(data: Any, loc: tuple[int | str, ...]) -> tuple[int | str, ...]:
+    """``loc`` as the document (after the overrides) spells it: pydantic's tags of a
+    discriminated union (``trajectory.out_and_back.speed_mm_s``) dropped, as :func:`_locate`
+    drops them from the YAML nodes, unless last (a missing key)."""
+    node, shown = data, []
+    for i, key in enumerate(loc):
+        if isinstance(node, dict) and isinstance(key, str) and key not in node and i + 1 < len(loc):
+            continue  # a union tag: the next part is a key of this mapping
+        shown.append(key)
+        if isinstance(node, dict):
+            node = node.get(key)
+        elif isinstance(node, list) and isinstance(key, int) and 0 <= key < len(node):
+            node = node[key]
+        else:
+            node = None
+    return tuple(shown)
+
+
 def _override_of(
     loc: tuple[int | str, ...], overrides: list[tuple[str, tuple[str, ...], Any]]
 ) -> tuple[str, str] | None:
-    """The ``--set`` text an error at ``loc`` comes from, if one set that part, and the
-    field to name (the key as given: pydantic's union tags beyond it dropped)."""
+    """The ``--set`` text an error at ``loc`` (union tags dropped: :func:`_as_written`) comes
+    from, if one set that part, and the field to name."""
     shown = tuple(str(p) for p in loc)
     for text, parts, _ in overrides:
         n = min(len(parts), len(shown))
@@ -201,7 +219,7 @@ def validate_data(
         errors = exc.errors()
         for err in errors[:MAX_PROBLEMS]:  # each is located by a walk of the document
             loc = tuple(err["loc"])
-            by = _override_of(loc, parsed)
+            by = _override_of(_as_written(data, loc), parsed)
             if by is not None:
                 problems.append(f"--set {by[0]}: {by[1]}: {_message(model, err)}")
                 continue

@@ -235,6 +235,23 @@ def test_set_overrides_a_protocol_and_names_itself_in_errors() -> None:
     assert "--set controller.rate_hz=abc: controller.rate_hz:" in result.output
 
 
+@pytest.mark.parametrize(
+    ("setting", "field"),
+    [
+        # inside a discriminated union (the trajectory, by its kind): pydantic's
+        # error location carries the union's tag, which the --set does not name
+        ("trajectory.speed_mm_s=-3", "trajectory.speed_mm_s"),
+        ("trajectory.kind=bogus", "trajectory"),
+        ("trajectory.size_mm=0", "trajectory.size_mm"),
+    ],
+)
+def test_a_set_inside_a_union_is_named_not_the_files_line(setting: str, field: str) -> None:
+    with pytest.raises(YamlModelError) as err:
+        load_protocol(TINY, (setting,))
+    assert str(err.value).startswith(f"--set {setting}: {field}: "), str(err.value)
+    assert ".yaml:" not in str(err.value)
+
+
 #: the tiny protocol at 25.5 Hz on an exact plant: the models' nominal robot and coils
 EXACT_PLANT = (
     "methods=[proposed]",
