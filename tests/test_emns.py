@@ -164,7 +164,7 @@ def test_an_mpem_import_selects_orders_by_the_gradient_too(three: Path, tmp_path
     for flags, north in (([], report["coil_types"]["north"]["selected_order"]),
                          (["--field-only"], 2)):  # fmt: skip
         result = CliRunner().invoke(
-            cli, ["field", "fit", "--system", str(folder), "--json", *flags]
+            cli, ["field", "fit", "--system", str(folder), "--json", "--overwrite", *flags]
         )
         assert result.exit_code == 0, result.output
         refit = json.loads(result.output)
@@ -215,7 +215,9 @@ def test_models_of_a_system_follow_the_shape_contract(three: Path) -> None:
 def test_a_three_channel_system_fits_and_runs_a_closed_loop(three: Path, tmp_path: Path) -> None:
     """`magrun field fit --system` reports per channel; a protocol with `system:` runs all
     six methods on it, background included, with exact feedback."""
-    result = CliRunner().invoke(cli, ["field", "fit", "--system", str(three), "--json"])
+    result = CliRunner().invoke(
+        cli, ["field", "fit", "--system", str(three), "--json", "--overwrite"]
+    )
     assert result.exit_code == 0, result.output
     import json
 
@@ -653,3 +655,44 @@ def test_a_system_is_loaded_once_and_again_when_its_files_change(tmp_path: Path)
     assert second is not first
     assert float(np.max(second.coils.max_current)) == 7.5
     assert float(np.max(second.models[0].coils.max_current)) == 7.5
+
+
+def test_the_field_commands_refuse_to_replace_their_outputs_unasked(tmp_path: Path) -> None:
+    """import-mpem, fit, import-comsol and reference write files a lab keeps (a system
+    folder, a fit, maps): where one of their outputs exists they exit 2 naming it, before any
+    work and with the file unchanged; with --overwrite they replace it."""
+    (tmp_path / "three.yaml").write_text(SYNTHETIC)
+    folder = tmp_path / "system"
+    mpem = ["field", "import-mpem", str(tmp_path / "three.yaml"), "--plane-z-mm", "0",
+            "--center-mm", "0", "0", "--half-width-mm", "10", "--out", str(folder)]  # fmt: skip
+    assert CliRunner().invoke(cli, mpem).exit_code == 0
+    from magrun.field.comsol import write_comsol_map
+
+    maps = ReferenceMaps.load(folder / "reference_maps.npz")
+    comsol = []
+    for name in ("north", "east", "south"):
+        write_comsol_map(tmp_path / f"{name}.txt", maps[name], length_unit="mm", field_unit="mT")
+    for name in ("small", "medium", "large"):
+        comsol += [f"--{name}", str(tmp_path / "north.txt")]
+    commands = {
+        "import-mpem": (mpem, folder / "system.yaml"),
+        "fit --system": (["field", "fit", "--system", str(folder)], folder / "zernike_model.json"),
+        "import-comsol": (
+            ["field", "import-comsol", *comsol, "--out", str(tmp_path / "m.npz")],
+            tmp_path / "m.npz",
+        ),
+        "reference": (
+            ["field", "reference", "--pitch-mm", "5", "--out", str(tmp_path / "ref.npz")],
+            tmp_path / "ref.npz",
+        ),
+    }
+    for name, (args, written) in commands.items():
+        written.write_bytes(b"a lab's file")
+        before = written.read_bytes()
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 2, (name, result.output)
+        assert f"{written} exists; pass --overwrite" in result.output, (name, result.output)
+        assert written.read_bytes() == before, name
+        result = CliRunner().invoke(cli, [*args, "--overwrite"])
+        assert result.exit_code == 0, (name, result.output)
+        assert written.read_bytes() != before, name

@@ -10,7 +10,7 @@ from typing import Any
 import click
 import numpy as np
 
-from magrun.cli.common import InputError, InputFile, load_coils
+from magrun.cli.common import InputError, InputFile, fresh_outputs, load_coils
 
 
 @click.group()
@@ -24,6 +24,30 @@ COILS_OPTION = click.option(
     default=None,
     help="Coil-system YAML (default: the paper's rig shipped with magrun).",
 )
+
+
+OVERWRITE_OPTION = click.option(
+    "--overwrite", is_flag=True, help="Replace the files this command writes if they exist."
+)
+
+
+def _fresh(outputs: list[Path], overwrite: bool) -> None:
+    """Refuse (exit 2) before any work where one of ``outputs`` exists, unless
+    ``overwrite``: a fit or an import never replaces a lab's files unasked."""
+    fresh_outputs(outputs, [], overwrite)
+
+
+def _folder_outputs(folder: Path) -> list[Path]:
+    """The files a coil-system folder import writes into ``folder``."""
+    from magrun.field.coils import MAPS_FILE, SYSTEM_FILE
+
+    return [folder / SYSTEM_FILE, folder / MAPS_FILE, *_fit_outputs(folder)]
+
+
+def _fit_outputs(folder: Path) -> list[Path]:
+    from magrun.field.fitting import FIGURE_FILE, MODEL_FILE, REPORT_FILE
+
+    return [folder / MODEL_FILE, folder / REPORT_FILE, folder / FIGURE_FILE]
 
 
 @field.command("reference")
@@ -49,7 +73,10 @@ COILS_OPTION = click.option(
     show_default=True,
     help="Radial current sheets per winding.",
 )
-def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int) -> None:
+@OVERWRITE_OPTION
+def field_reference(
+    coils: Path | None, out: Path, pitch_mm: float, sheets: int, overwrite: bool
+) -> None:
     """Compute unit-current reference maps of every coil type with magpylib.
 
     To refresh the maps shipped with magrun, run from a source checkout with
@@ -58,6 +85,7 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
     from magrun.field.reference import compute_reference_maps
 
     system = load_coils(coils)
+    _fresh([out], overwrite)
     start = time.perf_counter()
     maps = compute_reference_maps(system, pitch=pitch_mm * 1e-3, sheets=sheets)
     maps.save(out)
@@ -118,6 +146,7 @@ def field_reference(coils: Path | None, out: Path, pitch_mm: float, sheets: int)
     "--out says otherwise.",
 )  # fmt: skip
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as one JSON object.")
+@OVERWRITE_OPTION
 def field_fit(
     coils: Path | None,
     reference: Path | None,
@@ -128,6 +157,7 @@ def field_fit(
     gradient: bool | None,
     orders: tuple[str, ...],
     as_json: bool,
+    overwrite: bool,
 ) -> None:
     """Fit the Zernike model to reference maps and report MAE and R² per coil type and order
     (per channel for a system folder)."""
@@ -144,6 +174,7 @@ def field_fit(
     else:
         system = load_coils(coils)
         out = out or Path("recordings/field")
+    _fresh(_fit_outputs(out), overwrite)
     try:
         fixed = parse_orders(list(orders))
         maps = ReferenceMaps.load(reference)
@@ -214,6 +245,7 @@ def field_fit(
     "ending in .npz, a coil-system folder (the coils file, the maps and their Zernike fit) "
     "for a protocol's `system:`.",
 )
+@OVERWRITE_OPTION
 def field_import_comsol(
     coils: Path | None,
     small: Path | None,
@@ -221,6 +253,7 @@ def field_import_comsol(
     large: Path | None,
     current_a: float,
     out: Path,
+    overwrite: bool,
 ) -> None:
     """Build reference maps from COMSOL plain-text exports, one per coil type."""
     from magrun.field.comsol import import_comsol
@@ -232,6 +265,7 @@ def field_import_comsol(
     missing = sorted({ch.coil_type for ch in system.channels} - set(files))
     if missing:
         raise InputError(f"the driven coil types need exports too: --{' --'.join(missing)}")
+    _fresh([out] if out.suffix.lower() == ".npz" else _folder_outputs(out), overwrite)
     try:
         maps = import_comsol(files, current_a, coils_meta=system.spec.model_dump(mode="json"))
     except ValueError as exc:
@@ -285,8 +319,9 @@ def field_import_comsol(
 )  # fmt: skip
 @click.option(
     "--out", type=click.Path(file_okay=False, path_type=Path), required=True,
-    help="The system folder to write (system.yaml, reference_maps.npz).",
+    help="The system folder to write (system.yaml, reference_maps.npz, the Zernike fit).",
 )  # fmt: skip
+@OVERWRITE_OPTION
 def field_import_mpem(
     calibration: Path,
     plane_z_mm: float,
@@ -296,6 +331,7 @@ def field_import_mpem(
     max_current_a: float,
     max_slew_a_s: float,
     out: Path,
+    overwrite: bool,
 ) -> None:
     """Write a coil-system folder from an ETH multipole (MPEM) calibration.
 
@@ -306,6 +342,7 @@ def field_import_mpem(
     """
     from magrun.field.mpem import MpemError, MpemModel, import_mpem
 
+    _fresh(_folder_outputs(out), overwrite)
     try:
         folder = import_mpem(
             calibration, out, plane_z_mm * 1e-3, (center_mm[0] * 1e-3, center_mm[1] * 1e-3),

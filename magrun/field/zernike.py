@@ -443,7 +443,7 @@ class ZernikeFieldModel(PlanarFieldModel):
         if model.coils.spec.geometry() != coils.spec.geometry():
             raise ValueError(
                 f"{saved} was fitted to another system than {coils.source}: fit it again "
-                f"with 'magrun field fit --system {coils.folder}'"
+                f"with 'magrun field fit --system {coils.folder} --overwrite'"
             )
         return cls(coils, model.fits)  # the folder's limits, which a fit does not fix
 
