@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from mcap.reader import make_reader
+from mcap.writer import MCAP0_MAGIC
 from mcap_protobuf.decoder import DecoderFactory
 
 from analysis import metrics
@@ -138,6 +139,15 @@ def read_recording(path: str | Path, with_images: bool = False) -> Recording:
     path = Path(path)
     if not path.is_file():  # a FIFO would wait for a writer for ever
         raise RecordingError(path, "not a regular file" if path.exists() else "no such recording")
+    try:
+        with path.open("rb") as fh:
+            start = fh.read(len(MCAP0_MAGIC))
+    except OSError as exc:
+        raise RecordingError(path, f"cannot be opened: {exc.strerror or exc}") from exc
+    if not start:
+        raise RecordingError(path, "empty (0 bytes): nothing was recorded in it")
+    if start != MCAP0_MAGIC:
+        raise RecordingError(path, "not an MCAP file (it does not start with MCAP's magic bytes)")
     topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
     if with_images:
         topics.append("/camera/image")

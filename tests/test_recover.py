@@ -11,7 +11,7 @@ from click.testing import CliRunner
 from mcap.reader import make_reader
 
 from magrun.cli import cli
-from magrun.recordings.recover import recover
+from magrun.recordings.recover import NothingRecovered, recover
 from magrun.recordings.writer import RecordingSetup, TrialRecorder
 from magrun.records import ControllerStatus, Tick
 
@@ -95,6 +95,51 @@ def test_not_an_mcap_file_is_refused_cleanly(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert "not an MCAP file" in result.output
     assert not (tmp_path / "out.mcap").exists()
+
+
+def test_a_file_cut_before_its_first_message_is_refused_and_nothing_written(
+    recording: Path, tmp_path: Path
+) -> None:
+    """A recording cut inside its first chunk (before any message is whole) recovers
+    nothing: exit 2 naming the file and the bytes, no output, and an existing output kept
+    even with --overwrite (the copy would hold nothing a reader could use)."""
+    with recording.open("rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None
+    first = min(c.chunk_start_offset for c in summary.chunk_indexes)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[: first + 40])
+    out = tmp_path / "out.mcap"
+    with pytest.raises(NothingRecovered, match="no message could be recovered"):
+        recover(cut, out)
+    assert not out.exists()
+    assert not list(tmp_path.glob("*.tmp"))
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(out)])
+    assert result.exit_code == 2, result.output
+    assert f"{cut}: no message could be recovered from its {first + 40:,} bytes" in result.output
+    assert not out.exists()
+    out.write_bytes(b"an earlier recovery")
+    result = CliRunner().invoke(cli, ["recover", str(cut), str(out), "--overwrite"])
+    assert result.exit_code == 2, result.output
+    assert out.read_bytes() == b"an earlier recovery"
+
+
+def test_an_empty_file_is_named_empty_not_sent_to_recover(tmp_path: Path) -> None:
+    """A 0-byte .mcap (a run killed before its recorder wrote) is "empty" to every reader:
+    figures, replay, view and recover say so, and none suggests recover, which cannot help."""
+    empty = tmp_path / "trial-0.mcap"
+    empty.write_bytes(b"")
+    for args in (
+        ["figures", str(empty), "--out", str(tmp_path / "figs"), "--no-zernike"],
+        ["replay", str(empty)],
+        ["view", str(empty)],
+        ["recover", str(empty), str(tmp_path / "out.mcap")],
+    ):
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code in (1, 2), (args, result.output)
+        assert f"{empty}: empty (0 bytes)" in result.output, (args, result.output)
+        assert "magrun recover" not in result.output, (args, result.output)
+        assert "Traceback" not in result.output, (args, result.output)
 
 
 def test_recover_never_overwrites_its_input(recording: Path) -> None:

@@ -70,10 +70,10 @@ def _check_mcap(path: Path) -> None:
     """An InputError naming ``path`` and the fix unless it is an indexed MCAP file."""
     from analysis.load import RECOVER_HINT
     from magrun.recordings.reader import has_summary
-    from magrun.recordings.recover import is_mcap
+    from magrun.recordings.recover import not_mcap
 
-    if not is_mcap(path):
-        raise InputError(f"{path}: not an MCAP file (it does not start with MCAP's magic bytes)")
+    if (why := not_mcap(path)) is not None:
+        raise InputError(f"{path}: {why}")
     try:
         indexed = has_summary(path)
     except Exception as exc:  # mcap raises several types for damaged files
@@ -105,7 +105,8 @@ def recover_cmd(src: Path, dst: Path, rrd: bool, overwrite: bool, as_json: bool)
     Every intact record is kept (a recorder killed mid-trial loses at most its open chunk,
     about the last second); SRC is never modified, and an existing DST is not replaced
     without --overwrite. Prints how many messages were recovered
-    and how many bytes were not. Exit status 2 when SRC is not an MCAP file.
+    and how many bytes were not. Exit status 2 when SRC is not an MCAP file, or when not
+    one message of it survives (DST is then not written).
     """
     from magrun.recordings.recover import recover
 

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.files import open_binary
-from magrun.recordings.recover import is_mcap
+from magrun.recordings.recover import not_mcap
 from magrun.records import POSE_STREAMS, metadata_value, pose_of
 
 FloatArray = NDArray[np.float64]
@@ -78,8 +78,8 @@ def read_ticks(path: str | Path) -> RecordedTrial:
     from mcap_protobuf.decoder import DecoderFactory
 
     path = Path(path)
-    if path.is_file() and not is_mcap(path):
-        raise RecordingReadError(f"{path}: not an MCAP file (a recording is a trial's .mcap)")
+    if path.is_file() and (why := not_mcap(path)) is not None:
+        raise RecordingReadError(f"{path}: {why}")
     topics = [f"/robot/pose/{s}" for s in POSE_STREAMS] + ["/coils/currents", "/controller/status"]
     rows: dict[int, dict[str, Any]] = {}
     names: tuple[str, ...] = ()

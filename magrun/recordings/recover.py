@@ -34,6 +34,19 @@ from magrun.files import open_binary
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
+def not_mcap(path: str | Path) -> str | None:
+    """Why ``path`` is not an MCAP file ("empty (0 bytes) …", "not an MCAP file …"), or None
+    where it starts like one."""
+    if is_mcap(path):
+        return None
+    try:
+        if Path(path).stat().st_size == 0:
+            return "empty (0 bytes): nothing was recorded in it"
+    except OSError:
+        pass
+    return "not an MCAP file (it does not start with MCAP's magic bytes)"
+
+
 def is_mcap(path: str | Path) -> bool:
     """Whether ``path`` starts like an MCAP file (its magic bytes); False if unreadable."""
     try:
@@ -112,17 +125,22 @@ def copy_channel(
     return channel_ids[channel.id]
 
 
+class NothingRecovered(ValueError):
+    """An MCAP file of which not one message survives (:func:`recover` writes nothing)."""
+
+
 def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
     """Copy every intact record of ``src`` into a new, indexed MCAP file ``dst``.
 
-    Raises ``ValueError`` if ``src`` is not an MCAP file at all (no magic / header), and
+    Raises ``ValueError`` if ``src`` is not an MCAP file at all (no magic / header),
+    :class:`NothingRecovered` (a ``ValueError``) if not one message of it is intact, and
     refuses to overwrite ``src`` itself.
     """
     src, dst = Path(src), Path(dst)
     if src.resolve() == dst.resolve():
         raise ValueError(f"{src}: write the recovered file elsewhere, never over the original")
-    if not is_mcap(src):
-        raise ValueError(f"{src}: not an MCAP file (it does not start with MCAP's magic bytes)")
+    if (why := not_mcap(src)) is not None:
+        raise ValueError(f"{src}: {why}")
     report = RecoveryReport(bytes_total=src.stat().st_size)
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -183,5 +201,13 @@ def recover(src: str | Path, dst: str | Path) -> RecoveryReport:
                 },
             )
             writer.finish()
+        if report.messages == 0:
+            # nothing a reader could use: no copy that looks like a recording, and an
+            # existing dst is left as it was
+            tmp.unlink()
+            raise NothingRecovered(
+                f"{src}: no message could be recovered from its {report.bytes_total:,} bytes "
+                f"({report.problem or 'it holds none'}); {dst} was not written"
+            )
         tmp.replace(dst)
     return report
