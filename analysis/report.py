@@ -61,15 +61,22 @@ def results_table(data: Dataset) -> pd.DataFrame:
     errors where no prediction was recorded, and every metric of a failed or unreadable trial.
     Paths are relative to the dataset's root when it has one.
     """
-    t = data.trials.copy()
-    if data.root is not None and data.root.is_dir():
-        root = data.root.resolve()
-        t["path"] = [_relative(p, root) for p in t["path"]]
+    t = _trials(data)
     for col in RESULTS_COLUMNS:
         if col not in t:
             t[col] = np.nan
     rest = [c for c in t.columns if c not in RESULTS_COLUMNS]
     return t[[*RESULTS_COLUMNS, *rest]]
+
+
+def _trials(data: Dataset) -> pd.DataFrame:
+    """The dataset's trials with their paths relative to its root, when it has one (as
+    results.csv and the report show them)."""
+    t = data.trials.copy()
+    if data.root is not None and data.root.is_dir():
+        root = data.root.resolve()
+        t["path"] = [_relative(p, root) for p in t["path"]]
+    return t
 
 
 def _relative(path: object, root: Path) -> object:
@@ -376,11 +383,12 @@ def report_markdown(
                         },
                     ),
                 ]
-    bad = data.trials[data.trials["status"] != "ok"]
+    trials = _trials(data)
+    bad = trials[trials["status"] != "ok"]
     lines += ["## Trials not completed (failed, unreadable or pending)", ""]
     lines.append(_md_table(bad[["protocol", "method", "trial", "status", "error", "path"]]))
-    if "warnings" in data.trials:
-        warned = data.trials[data.trials["warnings"].fillna("").astype(str) != ""]
+    if "warnings" in trials:
+        warned = trials[trials["warnings"].fillna("").astype(str) != ""]
         lines += [
             "## Trials with warnings",
             "",

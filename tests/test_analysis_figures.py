@@ -229,6 +229,13 @@ def test_magrun_figures_goes_on_past_a_damaged_recording(tmp_path: Path) -> None
         rows = list(csv.DictReader(fh))
     assert [r["status"] for r in rows] == ["unreadable", "ok"]
     assert rows[0]["rms_position_mm"] == ""
+    # the report names the damaged trial by the path results.csv gives it (relative to the
+    # recordings), never by this machine's absolute path
+    relative = str(broken.relative_to(root))
+    assert rows[0]["path"] == relative
+    text = (tmp_path / "figs" / "report.md").read_text()
+    assert f"| {relative} |" in text
+    assert str(tmp_path) not in text.split("## Trials not completed")[1]
 
 
 def test_magrun_figures_on_an_empty_folder_is_an_input_error(tmp_path: Path) -> None:

@@ -537,6 +537,10 @@ def test_run_summary_names_trials_that_did_not_complete() -> None:
     # a lost trial is complete (ok) and counted in the lost column and the means
     assert lines[1].split()[:6] == ["a", "2/2", "1", "5.000", "2.00", "10%"]
     assert lines[2].split()[:6] == ["b", "0/2", "0", "—", "—", "—"]
+    # the last column is the trials' own times summed, not the run's wall time (with --jobs
+    # the trials overlap): it says so
+    assert lines[0].split()[-2:] == ["trial", "s"]
+    assert lines[1].split()[-1] == "2"
     assert "INTERRUPTED b/trial-0: stopped by SIGINT at t = 1.20 s" in lines
     assert "PENDING b/trial-1: not started (magrun run --resume runs it)" in lines
     assert "FAILED c/trial-0: no error recorded" in lines

@@ -101,14 +101,16 @@ class _RunProgress:
 
 
 def _summary(manifest: dict[str, Any]) -> list[str]:
-    """One line per condition: trials ok, mean RMS errors, overruns, drops, wall time ("—"
-    where no trial of the condition completed); then every trial that did not complete."""
+    """One line per condition: trials ok, mean RMS errors, overruns, drops, the trials' times
+    summed ("—" where no trial of the condition completed; with ``--jobs`` they overlap, and
+    the run's wall time is :func:`_run`'s last line); then every trial that did not
+    complete."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for e in manifest["trials"]:
         groups.setdefault(e["path"].rsplit("/", 1)[0], []).append(e)
     width = max(len(k) for k in groups)
     lines = [
-        f"{'condition':<{width}}  ok   lost  RMS mm  RMS deg  overrun  dropped  wall s",
+        f"{'condition':<{width}}  ok   lost  RMS mm  RMS deg  overrun  dropped  trial s",
     ]
 
     def shown(value: float, spec: str, width: int) -> str:
@@ -128,7 +130,7 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
             f"  {shown(mean('rms_position_mm'), '.3f', 6)}"
             f"  {shown(mean('rms_orientation_deg'), '.2f', 7)}  {shown(overrun, '.0%', 7)}"
             f"  {sum(e.get('dropped_ticks', 0) for e in entries):7d}"
-            f"  {sum(e.get('wall_s', 0.0) for e in entries):6.0f}"
+            f"  {sum(e.get('wall_s', 0.0) for e in entries):7.0f}"
         )
     for e in manifest["trials"]:
         status, error = e["status"], e.get("error") or ""
@@ -303,7 +305,7 @@ def _run(
     failed = sum(e["status"] not in ("ok", "stopped") for e in manifest["trials"])
     dropped = sum(e.get("dropped_ticks", 0) for e in manifest["trials"])
     click.echo(
-        f"{len(manifest['trials'])} trials in {wall:.0f} s -> {out / protocol.name}"
+        f"{len(manifest['trials'])} trials in {wall:.0f} s wall time -> {out / protocol.name}"
         + (f"; {dropped} ticks dropped by the recorder" if dropped else "")
     )
     normal = [
