@@ -70,6 +70,35 @@ def save(fig: Figure, out: str | Path, name: str) -> list[Path]:
     return paths
 
 
+#: the paper's names of its methods (Section II-D), as the figures show them; another
+#: method (a lab's own) is shown by its id
+METHOD_NAMES = {
+    "proposed": "Proposed",
+    "baseline1": "Baseline 1",
+    "baseline2": "Baseline 2 (PID)",
+    "baseline3": "Baseline 3",
+    "baseline4": "Baseline 4",
+    "baseline5": "Baseline 5",
+}
+
+
+def method_name(method: str) -> str:
+    """The name a figure shows for ``method`` (:data:`METHOD_NAMES`, else the id)."""
+    return METHOD_NAMES.get(method, method)
+
+
+def _named(
+    df: pd.DataFrame, methods: list[str], palette: dict[str, Any]
+) -> tuple[pd.DataFrame, list[str], dict[str, Any]]:
+    """``df``, the method order and the palette with the methods' display names, for the
+    seaborn plots whose ticks and legends show the ``method`` column's values."""
+    return (
+        df.assign(method=df["method"].map(method_name)),
+        [method_name(m) for m in methods],
+        {method_name(m): c for m, c in palette.items()},
+    )
+
+
 def _method_order(methods: list[str]) -> list[str]:
     return sorted(methods, key=lambda m: (m != "proposed", m))
 
@@ -176,7 +205,8 @@ def trajectories(data: Dataset, protocol: str) -> Figure:
             f"{r['rms_prediction_orientation_deg']:.1f}°"
         )
     else:  # a method that predicts nothing (the PID)
-        ax_b.set_title(f"(b) actual path ({rec.trial.get('method', '')}: no prediction)")
+        name = method_name(str(rec.trial.get("method", "")))
+        ax_b.set_title(f"(b) actual path ({name}: no prediction)")
     _square_limits(ax_b, s, ("", "_pred", "_des"))
     for ax in (ax_a, ax_b):
         ax.legend(loc="best", fontsize=8)
@@ -218,52 +248,86 @@ def _representative(data: Dataset, protocol: str, method: str) -> Recording:
 
 def comparison(data: Dataset, protocol: str) -> Figure:
     """The methods side by side under the protocol's one condition: (a) each method's actual
-    path over the desired path, (b) position error over time, (c) RMS per method.
+    path over the desired path, (b) position and (c) orientation error over time, (d) RMS
+    position and (e) RMS orientation error per method.
 
-    (a) and (b) show each method's trial with the median RMS error; (c) every trial.
+    (a)–(c) show each method's trial with the median RMS position error; (d), (e) every
+    trial. (a) draws the whole desired path where the recording has it and is framed on it:
+    a trial that ran only the path's start (``--quick``) is shown where it sits in the run.
+    Methods carry the paper's names (:data:`METHOD_NAMES`).
     """
     _style()
     trials = data.ok(protocol)
     methods = _method_order(trials["method"].unique().tolist())
     palette = _palette(methods)
-    fig = Figure(figsize=(15, 4.8), layout="constrained")
-    ax_a, ax_b, ax_c = fig.subplots(1, 3, width_ratios=[1.1, 1.5, 0.8])
+    fig = Figure(figsize=(15, 7.6), layout="constrained")
+    grid = fig.add_gridspec(2, 3, width_ratios=[1.25, 1.5, 0.8])
+    ax_a = fig.add_subplot(grid[:, 0])
+    ax_b = fig.add_subplot(grid[0, 1])
+    ax_c = fig.add_subplot(grid[1, 1], sharex=ax_b)
+    ax_d, ax_e = fig.add_subplot(grid[0, 2]), fig.add_subplot(grid[1, 2])
     shown: list[pd.DataFrame] = []
+    whole: np.ndarray | None = None
     for k, method in enumerate(methods):
         rec = _representative(data, protocol, method)
         s = data.samples[data.samples["path"] == str(rec.path)]
         shown.append(s)
         if k == 0:
             _draw_boundaries(ax_a, rec)
-            ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2.4, label="desired")
-        ax_a.plot(*_xy_mm(s), color=palette[method], lw=1.2, label=method)
-        ax_b.plot(s["t"], s["position_error_mm"], color=palette[method], lw=1.0, label=method)
-    _square_limits(ax_a, pd.concat(shown), ("", "_des"))
+            whole = rec.reference
+            if whole is not None:
+                ax_a.plot(whole[:, 0] * 1e3, whole[:, 1] * 1e3, color=COLORS["desired"],
+                          lw=1.2, alpha=0.35, ls="--", label="desired (whole path)")  # fmt: skip
+            ax_a.plot(*_xy_mm(s, "_des"), color=COLORS["desired"], lw=2.4,
+                      label="desired (this run)" if whole is not None else "desired")  # fmt: skip
+        name = method_name(method)
+        ax_a.plot(*_xy_mm(s), color=palette[method], lw=1.2, label=name)
+        ax_b.plot(s["t"], s["position_error_mm"], color=palette[method], lw=1.0, label=name)
+        ax_c.plot(s["t"], s["orientation_error_deg"].abs(), color=palette[method], lw=1.0,
+                  label=name)  # fmt: skip
+    framed = pd.concat(shown)
+    if whole is not None:
+        framed = pd.concat([framed, pd.DataFrame({"x_des": whole[:, 0], "y_des": whole[:, 1]})])
+    _square_limits(ax_a, framed, ("", "_des"))
     ax_a.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal", title="(a) actual paths")
     ax_a.legend(loc="best", fontsize=8)
-    ax_b.set(xlabel="time (s)", ylabel="position error (mm)", title="(b) position error")
-    if len(shown) and max(float(x["position_error_mm"].max()) for x in shown) > 20 * min(
-        max(float(x["position_error_mm"].median()), 1e-6) for x in shown
-    ):
+    ax_b.set(ylabel="position error (mm)", title="(b) position error")
+    ax_b.tick_params(labelbottom=False)
+    ax_c.set(xlabel="time (s)", ylabel="orientation error (°)", title="(c) orientation error")
+    # position errors spanning decades (a lost robot beside millimetre ones) on a log axis;
+    # the orientation error is bounded (180°) and stays linear
+    peaks = [float(x["position_error_mm"].max()) for x in shown]
+    typical = [max(float(x["position_error_mm"].median()), 1e-6) for x in shown]
+    if len(shown) and max(peaks) > 20 * min(typical):
         ax_b.set_yscale("log")
+    ax_c.set_ylim(bottom=0)
     ax_b.legend(loc="best", fontsize=8)
-    sns.stripplot(
-        data=trials, x="method", y="rms_position_mm", hue="method", order=methods,
-        hue_order=methods, palette=palette, legend=False, size=6, ax=ax_c,
-    )  # fmt: skip
-    sns.pointplot(
-        data=trials, x="method", y="rms_position_mm", order=methods, color="black",
-        errorbar="sd" if trials.groupby("method").size().min() > 1 else None,
-        linestyle="none", markers="_", markersize=18, capsize=0.2, ax=ax_c,
-    )  # fmt: skip
+    named, order, colours = _named(trials, methods, palette)
     n = trials.groupby("method").size()
-    ax_c.set(
-        xlabel="", ylabel="RMS position error (mm)",
-        title=f"(c) RMS, {n.min()}–{n.max()} trials each" if n.min() != n.max()
-        else f"(c) RMS, {n.min()} trial{'s' if n.min() > 1 else ''} each",
+    for ax, column, label, title in (
+        (ax_d, "rms_position_mm", "RMS position error (mm)", "(d) RMS position"),
+        (ax_e, "rms_orientation_deg", "RMS orientation error (°)", "(e) RMS orientation"),
+    ):
+        sns.stripplot(
+            data=named, x="method", y=column, hue="method", order=order, hue_order=order,
+            palette=colours, legend=False, size=6, ax=ax,
+        )  # fmt: skip
+        sns.pointplot(
+            data=named, x="method", y=column, order=order, color="black",
+            errorbar="sd" if n.min() > 1 else None,
+            linestyle="none", markers="_", markersize=18, capsize=0.2, ax=ax,
+        )  # fmt: skip
+        ax.set(xlabel="", ylabel=label, title=title)
+        top = float(trials[column].max())
+        if math.isfinite(top) and top > 0:
+            ax.set_ylim(0, top * 1.15)
+        ax.tick_params(axis="x", rotation=20)
+    ax_d.tick_params(labelbottom=False)
+    each = (
+        f"{n.min()}–{n.max()} trials each" if n.min() != n.max()
+        else f"{n.min()} trial{'s' if n.min() > 1 else ''} each"
     )  # fmt: skip
-    ax_c.set_ylim(0, float(trials["rms_position_mm"].max()) * 1.15)
-    ax_c.tick_params(axis="x", rotation=20)
+    ax_d.set_title(f"(d) RMS position, {each}")
     cond = _condition_text(trials)
     if cond:
         fig.suptitle(cond, fontsize=11)
@@ -344,9 +408,10 @@ def sweep(data: Dataset, protocol: str) -> Figure:
             # axis, where mean ± sd can reach below zero: the bars then give the trials'
             # range, which a log axis can show
             log = bool(subset[value].min() > 0 and subset[value].max() / subset[value].min() > 30)
+            named, order, colours = _named(subset, methods, palette)
             sns.lineplot(
-                data=subset, x=swept, y=value, hue="method", hue_order=methods,
-                palette=palette, style="method", style_order=methods, markers=True,
+                data=named, x=swept, y=value, hue="method", hue_order=order,
+                palette=colours, style="method", style_order=order, markers=True,
                 dashes=False, errorbar=("pi", 100) if log else "sd", err_style="bars",
                 err_kws={"capsize": 3}, ax=ax,
             )  # fmt: skip
@@ -386,9 +451,10 @@ def _violin(
     for key, value in condition.items():
         s = s[np.isclose(s[key], value)]
     s = s[["method", "position_error_mm"]].dropna()
+    named, order, colours = _named(s, methods, palette)
     sns.violinplot(
-        data=s, x="method", y="position_error_mm", hue="method", order=methods,
-        hue_order=methods, palette=palette, cut=0, inner="quartile", density_norm="width",
+        data=named, x="method", y="position_error_mm", hue="method", order=order,
+        hue_order=order, palette=colours, cut=0, inner="quartile", density_norm="width",
         legend=False, ax=ax,
     )  # fmt: skip
     tests = stats.compare_methods(s.assign(protocol=protocol), by=("protocol",))
@@ -404,7 +470,7 @@ def _violin(
     ax.tick_params(axis="x", rotation=20)
     if len(tests):
         ax.text(
-            0.01, 0.99, f"vs {tests['reference'].iloc[0]}: Mann–Whitney U, Holm",
+            0.01, 0.99, f"vs {method_name(tests['reference'].iloc[0])}: Mann–Whitney U, Holm",
             transform=ax.transAxes, ha="left", va="top", fontsize=7,
         )  # fmt: skip
 

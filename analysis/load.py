@@ -83,6 +83,22 @@ class Recording:
     def robot_diameter(self) -> float | None:
         return _float_or_none(self.trial.get("robot_diameter_m"))
 
+    @property
+    def reference(self) -> np.ndarray | None:
+        """The whole desired path (n, 2), m, as recorded in the ``workspace`` record (a trial
+        that stopped early, a ``--quick`` one, ran only its start); None in recordings
+        without it or where it is not a finite (n, 2) list."""
+        value = self.workspace.get("reference_m")
+        if not isinstance(value, list) or not value:
+            return None
+        try:
+            xy = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            return None
+        if xy.ndim != 2 or xy.shape[1] != 2 or not np.all(np.isfinite(xy)):
+            return None
+        return xy
+
     def control_period(self) -> float:
         """Nominal control period, s: the recorded control rate, else the median tick step."""
         rate = _float_or_none(self.trial.get("control_rate_hz"))

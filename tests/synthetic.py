@@ -47,6 +47,7 @@ class SynthTrial:
     seed: int = 0
     noise: float = 0.0  # m: Gaussian noise added to the actual position (for statistics)
     quick: bool = False  # recorded by `magrun run --quick`
+    whole_path: list[list[float]] | None = None  # m: the workspace record's reference_m
 
     @property
     def slug(self) -> str:
@@ -91,7 +92,11 @@ def write_mcap(path: Path, s: SynthTrial) -> Path:
         w.add_metadata("protocol", {"json": json.dumps({"name": s.protocol})})
         w.add_metadata(
             "workspace",
-            {"boundaries": json.dumps(s.boundaries), "half_width_m": json.dumps(0.03)},
+            {
+                "boundaries": json.dumps(s.boundaries),
+                "half_width_m": json.dumps(0.03),
+                **({"reference_m": json.dumps(s.whole_path)} if s.whole_path else {}),
+            },
         )
         channels: dict[str, int] = {}
 

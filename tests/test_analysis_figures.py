@@ -76,8 +76,10 @@ def test_sweep_lines_are_the_trial_means(paper: analysis.Dataset) -> None:
     lines = {
         line.get_label(): line for line in ax.get_lines() if not line.get_label().startswith("_")
     }
-    for method in ("proposed", "baseline1", "baseline2"):
-        x, y = lines[method].get_data()
+    # each line carries the paper's name of its method
+    names = {"proposed": "Proposed", "baseline1": "Baseline 1", "baseline2": "Baseline 2 (PID)"}
+    for method, name in names.items():
+        x, y = lines[name].get_data()
         np.testing.assert_allclose(y, [want[(method, r)] for r in x], rtol=1e-12)
 
 
@@ -292,27 +294,57 @@ def _single_condition_set(root: Path) -> analysis.Dataset:
 
 
 def test_a_single_condition_gets_the_comparison_figure(tmp_path: Path) -> None:
-    """Every method's path over the desired one, its error over time and its RMS; no NaN in
-    any title, every legend entry drawn."""
+    """Every method's path over the desired one, its position and orientation errors over
+    time and their RMS, under the paper's method names; no NaN in any title, every legend
+    entry drawn."""
     data = _single_condition_set(tmp_path)
     assert figures.figure_kind(data, "demo") == "comparison"
     fig = figures.comparison(data, "demo")
-    ax_a, ax_b, ax_c = fig.axes
-    assert [t.get_text() for t in ax_a.get_legend().get_texts()] == [
-        "desired", "proposed", "baseline2"
-    ]  # fmt: skip
-    assert [line.get_label() for line in ax_a.get_lines()] == ["desired", "proposed", "baseline2"]
+    ax_a, ax_b, ax_c, ax_d, ax_e = fig.axes
+    names = ["Proposed", "Baseline 2 (PID)"]
+    assert [t.get_text() for t in ax_a.get_legend().get_texts()] == ["desired", *names]
+    assert [line.get_label() for line in ax_a.get_lines()] == ["desired", *names]
     errors = {line.get_label(): np.asarray(line.get_ydata()) for line in ax_b.get_lines()}
-    assert set(errors) == {"proposed", "baseline2"}
-    assert np.median(errors["proposed"]) == pytest.approx(0.5, rel=1e-6)
-    assert np.median(errors["baseline2"]) == pytest.approx(1.5, rel=1e-6)
-    # (c): one point per trial at its RMS, the axis from zero
-    points = np.concatenate([c.get_offsets()[:, 1] for c in ax_c.collections])
-    assert sorted(points) == pytest.approx([0.5, 1.5], rel=1e-6)
-    assert ax_c.get_ylim()[0] == 0
+    assert set(errors) == set(names)
+    assert np.median(errors["Proposed"]) == pytest.approx(0.5, rel=1e-6)
+    assert np.median(errors["Baseline 2 (PID)"]) == pytest.approx(1.5, rel=1e-6)
+    # (c): the orientation error's magnitude over time, the samples' own
+    turned = {line.get_label(): np.asarray(line.get_ydata()) for line in ax_c.get_lines()}
+    assert set(turned) == set(names)
+    for method, name in zip(("proposed", "baseline2"), names, strict=True):
+        s = data.samples[data.samples["method"] == method]
+        want = np.abs(s["orientation_error_deg"].to_numpy())
+        np.testing.assert_allclose(turned[name], want, rtol=1e-12)
+    # (d), (e): one point per trial at its RMS, the axes from zero, the ticks named
+    for ax, column in ((ax_d, "rms_position_mm"), (ax_e, "rms_orientation_deg")):
+        points = np.concatenate([c.get_offsets()[:, 1] for c in ax.collections])
+        want = data.ok("demo").sort_values("method", ascending=False)[column]
+        assert sorted(points) == pytest.approx(sorted(want), rel=1e-6)
+        assert ax.get_ylim()[0] == 0
+    assert [t.get_text() for t in ax_e.get_xticklabels()] == names
     titles = [ax.get_title() for ax in fig.axes] + [fig.get_suptitle()]
     assert not any("nan" in t.lower() for t in titles), titles
     assert fig.get_suptitle() == "tracking rate 3 Hz, noise σ 2 mm"
+
+
+def test_the_comparison_shows_the_whole_desired_path_of_a_short_run(tmp_path: Path) -> None:
+    """A trial that ran only the start of its path (a --quick run) is drawn over the whole
+    desired path that the recording keeps, and panel (a) is framed on that whole path."""
+    whole = [[-0.02 + 0.001 * k, 0.01 * math.sin(0.1 * k)] for k in range(60)]
+    trials = [
+        SynthTrial("demo", method, offset=(off, 0.0, 0.05), whole_path=whole,
+                   conditions={"tracking_rate_hz": 3.0, "noise_sigma_mm": 2.0})
+        for method, off in (("proposed", 0.5e-3), ("baseline2", 1.5e-3))
+    ]  # fmt: skip
+    data = analysis.load(write_set(tmp_path, trials))
+    ax_a = figures.comparison(data, "demo").axes[0]
+    lines = {line.get_label(): line for line in ax_a.get_lines()}
+    x, y = (np.asarray(v, dtype=float) for v in lines["desired (whole path)"].get_data())
+    np.testing.assert_allclose(np.column_stack([x, y]), np.asarray(whole) * 1e3, rtol=1e-12)
+    assert "desired (this run)" in lines
+    (x0, x1), (y0, y1) = ax_a.get_xlim(), ax_a.get_ylim()
+    assert x0 <= x.min() <= x.max() <= x1
+    assert y0 <= y.min() <= y.max() <= y1
 
 
 def test_the_prediction_figure_of_a_method_without_predictions_says_so(tmp_path: Path) -> None:
@@ -366,8 +398,8 @@ def test_a_sweep_of_two_conditions_gets_a_row_per_value_of_the_second(tmp_path: 
     for ax, sigma in ((fig.axes[0], 0.0), (fig.axes[2], 2.0)):
         assert f"noise σ = {sigma:g} mm" in ax.get_title()
         lines = {ln.get_label(): ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
-        for method in ("proposed", "baseline2"):
-            _, y = lines[method].get_data()
+        for method, name in (("proposed", "Proposed"), ("baseline2", "Baseline 2 (PID)")):
+            _, y = lines[name].get_data()
             np.testing.assert_allclose(y, want[(method, sigma)], rtol=1e-9)
 
 

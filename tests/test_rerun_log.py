@@ -200,3 +200,40 @@ def test_recording_name_without_a_view_record() -> None:
     trial = {"protocol": "spine", "method": "proposed", "trial": 0, "seed": 11}
     assert recording_name(trial) == "spine · proposed · trial 0 · seed 11"
     assert recording_name({}) == "magrun trial"
+
+
+def test_a_trial_stopped_early_keeps_its_whole_desired_path(tmp_path: Path) -> None:
+    """A recording of 20 ticks of a 90-tick path (a --quick run) keeps the whole path in its
+    ``workspace`` record (m, to 1e-7 m), and the .rrd rebuilt from the MCAP draws the whole
+    path, as the recorder's own .rrd does, not only the part the trial ran."""
+    import json
+
+    from mcap.reader import make_reader
+
+    setup = _setup(90)
+    rec = _record(tmp_path / "t", setup, _ticks(90, None)[:20])
+    with rec.mcap_path.open("rb") as fh:
+        meta = {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+    kept = np.asarray(json.loads(meta["workspace"]["reference_m"]))
+    assert setup.reference is not None
+    np.testing.assert_allclose(kept, setup.reference[:, :2], rtol=0, atol=1e-7)
+    converted = tmp_path / "converted.rrd"
+    assert rrd_from_mcap(rec.mcap_path, converted) == 20
+    strip = np.array(_static(converted)["/workspace/reference"]["LineStrips2D:strips"][0])
+    live = np.array(_static(rec.rrd_path)["/workspace/reference"]["LineStrips2D:strips"][0])
+    assert len(strip) == 90
+    np.testing.assert_allclose(strip, live, rtol=0, atol=1e-6)
+
+
+def test_a_long_path_is_thinned_to_its_shape() -> None:
+    """More than REFERENCE_POINTS poses are thinned to every n-th, the last always kept."""
+    from magrun.recordings.writer import REFERENCE_POINTS, reference_path
+
+    xy = np.column_stack(
+        [np.linspace(0, 0.04, 5 * REFERENCE_POINTS + 3), np.zeros(5 * REFERENCE_POINTS + 3)]
+    )
+    kept = np.asarray(reference_path(np.column_stack([xy, np.zeros(len(xy))])))
+    assert len(kept) <= REFERENCE_POINTS + 1
+    np.testing.assert_allclose(kept[0], xy[0])
+    np.testing.assert_allclose(kept[-1], xy[-1])
+    assert reference_path(None) is None

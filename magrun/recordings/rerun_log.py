@@ -524,6 +524,21 @@ def view_metadata(setup: RecordingSetup) -> dict[str, str]:
     }
 
 
+def recorded_reference(workspace: dict[str, str]) -> FloatArray | None:
+    """The whole desired path (n, 2), m, of a recording's ``workspace`` record, or None where
+    it has none (recordings from before it was recorded) or it is not a finite (n, 2) list."""
+    value = metadata_value(workspace.get("reference_m", "null"))
+    if not isinstance(value, list) or not value:
+        return None
+    try:
+        xy = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if xy.ndim != 2 or xy.shape[1] != 2 or not np.all(np.isfinite(xy)):
+        return None
+    return xy
+
+
 def rrd_from_mcap(mcap: str | Path, rrd: str | Path, live_view: str = "") -> int:
     """Write ``rrd`` from a magrun MCAP recording, with the recorder's entities and
     blueprint, and stream it to the viewer at the gRPC URL ``live_view`` too if one is
@@ -574,13 +589,18 @@ def _rrd_from_mcap(mcap: Path, rrd: Path, live_view: str) -> int:
         }
         half_width = metadata_value(workspace.get("half_width_m", "null"))
         view = meta.get("view", {})
-        # one pass for the desired path (drawn from the start), one for the ticks
-        desired = [
-            pose_of(msg)
-            for _s, _c, _m, msg in reader.iter_decoded_messages(
-                topics=["/robot/pose/desired"], log_time_order=True
-            )
-        ]
+        # the whole desired path, drawn from the start: the workspace record's (a trial
+        # stopped early, a --quick one, still shows where it was going); recordings from
+        # before it was recorded: one pass over the desired poses
+        reference = recorded_reference(workspace)
+        if reference is None:
+            desired = [
+                pose_of(msg)
+                for _s, _c, _m, msg in reader.iter_decoded_messages(
+                    topics=["/robot/pose/desired"], log_time_order=True
+                )
+            ]
+            reference = np.asarray(desired) if desired else None
         names: tuple[str, ...] = ()
         for _s, _c, _m, msg in reader.iter_decoded_messages(
             topics=["/coils/currents"], log_time_order=True
@@ -592,7 +612,7 @@ def _rrd_from_mcap(mcap: Path, rrd: Path, live_view: str) -> int:
             channel_names=names,
             boundaries=boundaries,
             workspace_half_width=float(half_width) if half_width is not None else None,
-            reference=np.asarray(desired) if desired else None,
+            reference=reference,
             camera=_camera(metadata_value(view.get("camera", "null"))),
             recording_id=view.get("recording_id") or f"{mcap.stem}@{mcap.parent.name}",
             name=view.get("name") or recording_name(trial),

@@ -184,6 +184,22 @@ class Recorder(ABC):
         self.close("ok" if exc_type is None else "failed")
 
 
+#: the most points of the desired path the ``workspace`` record keeps (a 60 s path at
+#: 25.5 Hz has 1,530; every n-th is kept beyond this, the last always)
+REFERENCE_POINTS = 2000
+
+
+def reference_path(reference: FloatArray | None) -> list[list[float]] | None:
+    """The whole desired path's (x, y), m, for the ``workspace`` record's ``reference_m``: what
+    a view of the recording draws even where the trial stopped early (a ``--quick`` run)."""
+    if reference is None or len(reference) == 0:
+        return None
+    xy = np.asarray(reference, dtype=np.float64)[:, :2]
+    step = -(-len(xy) // REFERENCE_POINTS)
+    kept = xy[::step] if (len(xy) - 1) % step == 0 else np.vstack([xy[::step], xy[-1:]])
+    return [[round(float(x), 7), round(float(y), 7)] for x, y in kept]
+
+
 class TrialRecorder(Recorder):
     """Writes one trial to ``<base>.mcap`` and ``<base>.rrd`` on its own thread.
 
@@ -247,6 +263,7 @@ class TrialRecorder(Recorder):
             {
                 "boundaries": json.dumps({k: v.tolist() for k, v in self.setup.boundaries.items()}),
                 "half_width_m": json.dumps(self.setup.workspace_half_width),
+                "reference_m": json.dumps(reference_path(self.setup.reference)),
             },
         )
         self._mcap.add_metadata("view", view_metadata(self.setup))
