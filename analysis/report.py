@@ -285,9 +285,11 @@ def report_markdown(
     figures: Mapping[str, list[Path]] | None = None,
     out_dir: Path | None = None,
     replays: pd.DataFrame | None = None,
+    zernike_source: str | None = None,
 ) -> str:
     """The report: headline numbers, per-protocol summaries, statistics, problems, figures,
-    and the estimator replays found beside the recordings (:mod:`analysis.replays`)."""
+    and the estimator replays found beside the recordings (:mod:`analysis.replays`).
+    ``zernike_source`` names what the Zernike figure is the fit of."""
     comparisons = stats.compare_methods(data.samples) if not data.samples.empty else None
     lines = [
         "# magrun results",
@@ -400,7 +402,10 @@ def report_markdown(
     if replays is not None and len(replays):
         lines += _replay_section(replays, figures)
     if figures and "zernike" in figures:
-        lines += ["## Zernike field model", "", "![zernike](zernike.png)", ""]
+        lines += ["## Zernike field model", ""]
+        if zernike_source:
+            lines += [f"The field fit of {zernike_source}.", ""]
+        lines += ["![zernike](zernike.png)", ""]
     return "\n".join(lines) + "\n"
 
 

@@ -48,6 +48,7 @@ class SynthTrial:
     noise: float = 0.0  # m: Gaussian noise added to the actual position (for statistics)
     quick: bool = False  # recorded by `magrun run --quick`
     whole_path: list[list[float]] | None = None  # m: the workspace record's reference_m
+    system: str | None = None  # the protocol's coil-system folder (None: the paper's rig)
 
     @property
     def slug(self) -> str:
@@ -89,7 +90,8 @@ def write_mcap(path: Path, s: SynthTrial) -> Path:
             "critical_boundary": s.critical,
         }
         w.add_metadata("trial", trial_meta)
-        w.add_metadata("protocol", {"json": json.dumps({"name": s.protocol})})
+        protocol = {"name": s.protocol, **({"system": s.system} if s.system else {})}
+        w.add_metadata("protocol", {"json": json.dumps(protocol)})
         w.add_metadata(
             "workspace",
             {

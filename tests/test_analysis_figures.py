@@ -464,3 +464,32 @@ def test_a_log_scaled_sweep_draws_the_trials_range_not_a_negative_sd(tmp_path: P
     )  # the lowest end: a trial, not mean − sd
     assert any("their range" in t.get_text() for t in ax.texts)
     assert any("± 1 sd" in t.get_text() for t in fig.axes[1].texts)  # orientation: linear
+
+
+def test_the_report_never_shows_another_systems_field_figure(tmp_path: Path) -> None:
+    """Recordings of another coil system get that system's own Zernike figure where its
+    folder has the fit's figure data, and the report says whose fit it is; where it has
+    none, no Zernike figure at all (a note says how to make one), never the paper rig's."""
+    from magrun.field.fitting import FIGURE_FILE
+
+    folder = tmp_path / "octo"
+    folder.mkdir()
+    trials = [SynthTrial("demo", "proposed", system=str(folder))]
+    root = write_set(tmp_path / "rec", trials)
+    res = _run("figures", root, "--out", tmp_path / "without")
+    assert res.exit_code == 0, res.output
+    assert not (tmp_path / "without" / "zernike.png").exists()
+    assert f"the recordings are of {folder}" in res.output
+    assert "## Zernike field model" not in (tmp_path / "without" / "report.md").read_text()
+    shipped = Path(figures.__file__).parents[1] / "magrun" / "field" / "data" / FIGURE_FILE
+    (folder / FIGURE_FILE).write_bytes(shipped.read_bytes())
+    res = _run("figures", root, "--out", tmp_path / "with")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "with" / "zernike.png").is_file()
+    assert f"The field fit of {folder}." in (tmp_path / "with" / "report.md").read_text()
+    # the paper's rig: the shipped fit, named as such
+    paper = write_set(tmp_path / "paper", [SynthTrial("demo", "proposed")])
+    res = _run("figures", paper, "--out", tmp_path / "paper-figs")
+    assert res.exit_code == 0, res.output
+    text = (tmp_path / "paper-figs" / "report.md").read_text()
+    assert "The field fit of the paper's rig (the fit shipped with magrun)." in text

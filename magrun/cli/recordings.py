@@ -186,11 +186,18 @@ def figures(
         click.echo(f"unreadable: {problem}", err=True)
     if data.trials.empty:
         raise InputError(f"{recordings}: no recordings found (run `magrun run PROTOCOL` first)")
+    source = "the paper's rig (the fit shipped with magrun)" if z is not None else None
+    if z is not None and zernike_data is None:
+        z, source = _zernike_of_systems(data, z)
+    elif zernike_data is not None:
+        source = str(zernike_data)
     written = analysis.figures.draw_all(data, out, zernike_data=z)
     results = analysis.write_results(data, out / "results.csv")
     replays = _replays(recordings, out, written)
     report = out / "report.md"
-    report.write_text(report_markdown(data, written, out_dir=out, replays=replays))
+    report.write_text(
+        report_markdown(data, written, out_dir=out, replays=replays, zernike_source=source)
+    )
     for name, paths in written.items():
         click.echo(f"{name:>18}: " + ", ".join(str(p) for p in paths))
     if replays is not None:
@@ -199,6 +206,33 @@ def figures(
     click.echo(f"{'report':>18}: {report}")
     if data.problems:
         raise click.ClickException(f"{len(data.problems)} recording(s) could not be read")
+
+
+def _zernike_of_systems(data: Any, shipped: Any) -> tuple[Any, str | None]:
+    """The Zernike figure data for the recordings' coil system, and what it is the fit of:
+    the shipped fit for the paper's rig; a system folder's own ``zernike_figure.npz`` where
+    every recording is of that one folder and it is there; else none (a note on stderr),
+    never another system's figure."""
+    from magrun.field.fitting import FIGURE_FILE, read_figure_data
+
+    systems = {rec.protocol.get("system") for rec in data.recordings.values()}
+    if systems <= {None}:
+        return shipped, "the paper's rig (the fit shipped with magrun)"
+    named = sorted(str(v) for v in systems if v)
+    if len(systems) == 1:
+        folder = Path(named[0])
+        try:
+            return read_figure_data(folder / FIGURE_FILE), str(folder)
+        except (OSError, ValueError):
+            pass
+    click.echo(
+        "note: no Zernike figure: the recordings are of "
+        + ", ".join(named + (["the paper's rig"] if None in systems else []))
+        + f", not one system whose fit figure data is here (`magrun field fit --system DIR "
+        f"--overwrite` writes DIR/{FIGURE_FILE}; pass it with --zernike-data)",
+        err=True,
+    )
+    return None, None
 
 
 def _replays(recordings: Path, out: Path, written: dict[str, list[Path]]) -> Any:
