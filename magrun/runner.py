@@ -36,10 +36,11 @@ import math
 import multiprocessing
 import os
 import shutil
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager, nullcontext, suppress
+from contextlib import ExitStack, contextmanager, nullcontext, suppress
 from pathlib import Path
 from typing import Any
 
@@ -281,13 +282,41 @@ def _one_thread_per_worker() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def _worker_init() -> None:
+@contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Processes started inside the block begin with SIGINT ignored: an ignored signal is
+    inherited across the spawn's exec, and Python then installs no KeyboardInterrupt
+    handler, so a Ctrl-C while a worker still imports (seconds: torch, CasADi) cannot kill
+    it mid-import, a traceback on the terminal and the pool broken. The worker's
+    initializer installs the stop handler (:func:`_worker_init`). The block only starts
+    processes (milliseconds); a Ctrl-C within it is lost to this process too."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+#: a pool worker's progress queue (:func:`_worker_init`; None: no progress is sent)
+_progress_queue: Any = None
+
+
+def _worker_init(progress: Any = None) -> None:
+    global _progress_queue
+    # first: SIGINT / SIGTERM end the worker's trial cleanly from here on (before, the
+    # worker ignored SIGINT: _children_ignore_sigint)
+    interrupt.install_in_worker()
+    _progress_queue = progress
     import cv2
     import torch
 
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    interrupt.install_in_worker()  # SIGINT / SIGTERM end the worker's trial cleanly
 
 
 def _pool_progress(q: Any) -> ProgressFn:
@@ -299,6 +328,8 @@ def _pool_progress(q: Any) -> ProgressFn:
 
 
 def _run_in_worker(trial: Trial, out: str, rig: RigSpec, q: Any, view: str = "") -> dict[str, Any]:
+    """One trial in a worker; progress into ``q``, else into the pool's queue, if any."""
+    q = q if q is not None else _progress_queue
     return execute_trial(trial, out, rig, _pool_progress(q) if q is not None else None, view)
 
 
@@ -324,29 +355,38 @@ def local_executor(jobs: int = 1, view: str = "") -> Executor:
                 yield execute_trial(trial, out, rig, progress, view)
             return
         ctx = multiprocessing.get_context("spawn")  # no forked torch / casadi state
-        with _one_thread_per_worker(), ctx.Manager() as manager:
-            q = manager.Queue() if progress is not None else None
-            with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
+        # progress through a queue the workers inherit (no manager process to start)
+        q = ctx.SimpleQueue() if progress is not None else None
+        with _one_thread_per_worker(), ExitStack() as stack:
+            pool = stack.enter_context(
+                cf.ProcessPoolExecutor(
+                    jobs, mp_context=ctx, initializer=_worker_init, initargs=(q,)
+                )
+            )
+            with _children_ignore_sigint():  # each submit starts a worker, up to ``jobs``
                 futures = {
-                    pool.submit(_run_in_worker, t, str(out), rig, q, view): t for t in trials
+                    pool.submit(_run_in_worker, t, str(out), rig, None, view): t for t in trials
                 }
-                pending = set(futures)
-                forwarded = False
-                while pending:
-                    if interrupt.requested() is not None and not forwarded:
-                        forwarded = True  # running trials end cleanly; queued ones never start
+            pending = set(futures)
+            stopping = False
+            while pending:
+                if interrupt.requested() is not None:
+                    if not stopping:
+                        stopping = True  # running trials end cleanly; queued ones never start
                         for fut in pending:
                             fut.cancel()
-                        _signal_workers(pool, interrupt.requested())
                         pending = {f for f in pending if not f.cancelled()}
                         if not pending:
                             break
-                    done, pending = cf.wait(pending, timeout=0.2)
-                    while q is not None and not q.empty():
-                        assert progress is not None
-                        progress(*q.get_nowait())
-                    for fut in done:
-                        yield _result_or_failure(fut.result, futures[fut])
+                    # at every wait: a worker still starting ignores SIGINT until its
+                    # handler is set up (_worker_init), and must not then run a whole trial
+                    _signal_workers(pool, interrupt.requested())
+                done, pending = cf.wait(pending, timeout=0.2)
+                while q is not None and not q.empty():
+                    assert progress is not None
+                    progress(*q.get())
+                for fut in done:
+                    yield _result_or_failure(fut.result, futures[fut])
 
     return run
 
@@ -360,6 +400,9 @@ def shared_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor]:
         _one_thread_per_worker(),
         cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool,
     ):
+        with _children_ignore_sigint():
+            for _ in range(jobs):  # each submit starts a worker, ignoring SIGINT until set up
+                pool.submit(int)
         yield pool
 
 

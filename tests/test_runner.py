@@ -565,6 +565,70 @@ def test_magrun_run_exits_128_plus_the_signal(
         assert meta["recorder"]["status"] == "interrupted"
 
 
+def _spawned_children(pid: int) -> int:
+    """How many processes ``pid`` has started with multiprocessing's spawn (Linux /proc)."""
+    count = 0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            line = (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue  # gone meanwhile
+        count += parent == pid and b"spawn_main" in line
+    return count
+
+
+def _as_from_a_terminal() -> None:
+    """A child as a terminal starts it: SIGINT at its default (a test run from a script in
+    the background inherits it ignored) and its own process group, for the Ctrl-C."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the workers in /proc")
+@pytest.mark.parametrize("moment", ["importing", "workers starting"])
+def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(tmp_path: Path, moment: str) -> None:
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the command
+    still imports, or while its two worker processes import (seconds: torch, CasADi):
+    exit 130, no traceback anywhere (the workers' own stderr included), and every trial
+    pending or interrupted, never failed; after the workers' start --resume runs them all."""
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "magrun.console", "run", str(TINY), "--out", str(out),
+               "--jobs", "2"]  # fmt: skip
+    proc = subprocess.Popen(
+        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True, preexec_fn=_as_from_a_terminal,
+    )  # fmt: skip
+    manifest = out / "tiny" / "manifest.json"
+    if moment == "importing":
+        time.sleep(0.2)
+    else:
+        deadline = time.monotonic() + 120
+        while _spawned_children(proc.pid) < 2 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert _spawned_children(proc.pid) >= 2
+        time.sleep(0.3)  # into the workers' imports, which take seconds
+    os.killpg(proc.pid, signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stdout + stderr, stderr
+    assert "Aborted" not in stderr
+    if manifest.exists():
+        statuses = {e["status"] for e in json.loads(manifest.read_text())["trials"]}
+        assert statuses <= {"pending", "interrupted"}, statuses
+    if moment == "workers starting":
+        again = subprocess.run(
+            [*command, "--resume"], capture_output=True, text=True, timeout=300
+        )  # fmt: skip
+        assert again.returncode == 0, again.stderr
+        assert {e["status"] for e in json.loads(manifest.read_text())["trials"]} == {"ok"}
+
+
 def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jobs(
     tmp_path: Path,
 ) -> None:

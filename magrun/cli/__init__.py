@@ -68,9 +68,16 @@ for command in (
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """The command line: click's own handling of its errors, with a Ctrl-C at any moment
+    (before a run's stop handler is set up, or after) ending it with exit status 130 and one
+    line (click alone prints "Aborted!" and exits 1)."""
+    from magrun.console import interrupted
+
     try:
-        cli.main(prog_name="magrun", standalone_mode=True)
-    except KeyboardInterrupt:
-        click.echo("interrupted", err=True)
-        sys.exit(130)
+        code = cli.main(prog_name="magrun", standalone_mode=False)
+    except (KeyboardInterrupt, click.exceptions.Abort):
+        interrupted()
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    sys.exit(code if isinstance(code, int) else 0)
