@@ -7,16 +7,7 @@ line, never a traceback (:func:`magrun.cli.main` does the same once it runs).
 
 from __future__ import annotations
 
-import sys
-
-#: what a stop by Ctrl-C prints, and its exit status (128 + SIGINT)
-INTERRUPTED = ("interrupted", 130)
-
-
-def interrupted() -> None:
-    """End the process as a Ctrl-C does: one line on stderr, exit status 130."""
-    print(f"\n{INTERRUPTED[0]}", file=sys.stderr)
-    sys.exit(INTERRUPTED[1])
+from magrun.interrupt import exit_interrupted
 
 
 def main() -> None:
@@ -24,7 +15,7 @@ def main() -> None:
     try:
         from magrun.cli import main as run
     except KeyboardInterrupt:
-        interrupted()
+        exit_interrupted()
     run()
 
 

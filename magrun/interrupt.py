@@ -43,6 +43,14 @@ def clear() -> None:
     _requested = None
 
 
+def exit_interrupted() -> None:
+    """End the process as a Ctrl-C outside a run does: one line on stderr, exit status 130."""
+    import sys
+
+    print("\ninterrupted", file=sys.stderr)
+    sys.exit(exit_status(signal.SIGINT))
+
+
 def exit_status(signum: int) -> int:
     """The shell's convention for a process ended by ``signum``: 128 + its number."""
     return 128 + int(signum)

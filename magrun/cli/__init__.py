@@ -71,12 +71,12 @@ def main() -> None:
     """The command line: click's own handling of its errors, with a Ctrl-C at any moment
     (before a run's stop handler is set up, or after) ending it with exit status 130 and one
     line (click alone prints "Aborted!" and exits 1)."""
-    from magrun.console import interrupted
+    from magrun.interrupt import exit_interrupted
 
     try:
         code = cli.main(prog_name="magrun", standalone_mode=False)
     except (KeyboardInterrupt, click.exceptions.Abort):
-        interrupted()
+        exit_interrupted()
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
