@@ -283,23 +283,25 @@ def _one_thread_per_worker() -> Iterator[None]:
 
 
 @contextmanager
-def _children_ignore_sigint() -> Iterator[None]:
-    """Processes started inside the block begin with SIGINT ignored: an ignored signal is
-    inherited across the spawn's exec, and Python then installs no KeyboardInterrupt
-    handler, so a Ctrl-C while a worker still imports (seconds: torch, CasADi) cannot kill
-    it mid-import, a traceback on the terminal and the pool broken. The worker's
-    initializer installs the stop handler (:func:`_worker_init`). The block only starts
-    processes (milliseconds); a Ctrl-C within it is lost to this process too."""
+def _children_ignore_stops() -> Iterator[None]:
+    """Processes started inside the block begin with SIGINT and SIGTERM ignored: an ignored
+    signal is inherited across the spawn's exec, and Python then installs no
+    KeyboardInterrupt handler, so a Ctrl-C (or the stop this process passes on) while a
+    worker still imports (seconds: torch, CasADi) cannot kill it mid-import, a traceback on
+    the terminal and the pool broken. The worker's initializer installs the stop handler
+    (:func:`_worker_init`). The block only starts processes (milliseconds); a signal within
+    it is lost to this process too."""
     import signal
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in interrupt.SIGNALS}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 #: a pool worker's progress queue (:func:`_worker_init`; None: no progress is sent)
@@ -309,7 +311,7 @@ _progress_queue: Any = None
 def _worker_init(progress: Any = None) -> None:
     global _progress_queue
     # first: SIGINT / SIGTERM end the worker's trial cleanly from here on (before, the
-    # worker ignored SIGINT: _children_ignore_sigint)
+    # worker ignored them: _children_ignore_stops)
     interrupt.install_in_worker()
     _progress_queue = progress
     import cv2
@@ -363,7 +365,7 @@ def local_executor(jobs: int = 1, view: str = "") -> Executor:
                     jobs, mp_context=ctx, initializer=_worker_init, initargs=(q,)
                 )
             )
-            with _children_ignore_sigint():  # each submit starts a worker, up to ``jobs``
+            with _children_ignore_stops():  # each submit starts a worker, up to ``jobs``
                 futures = {
                     pool.submit(_run_in_worker, t, str(out), rig, None, view): t for t in trials
                 }
@@ -378,7 +380,7 @@ def local_executor(jobs: int = 1, view: str = "") -> Executor:
                         pending = {f for f in pending if not f.cancelled()}
                         if not pending:
                             break
-                    # at every wait: a worker still starting ignores SIGINT until its
+                    # at every wait: a worker still starting ignores the stop until its
                     # handler is set up (_worker_init), and must not then run a whole trial
                     _signal_workers(pool, interrupt.requested())
                 done, pending = cf.wait(pending, timeout=0.2)
@@ -400,8 +402,8 @@ def shared_pool(jobs: int) -> Iterator[cf.ProcessPoolExecutor]:
         _one_thread_per_worker(),
         cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool,
     ):
-        with _children_ignore_sigint():
-            for _ in range(jobs):  # each submit starts a worker, ignoring SIGINT until set up
+        with _children_ignore_stops():
+            for _ in range(jobs):  # each submit starts a worker, ignoring stops until set up
                 pool.submit(int)
         yield pool
 

@@ -587,12 +587,18 @@ def _as_from_a_terminal() -> None:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds the workers in /proc")
-@pytest.mark.parametrize("moment", ["importing", "workers starting"])
-def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(tmp_path: Path, moment: str) -> None:
+@pytest.mark.parametrize(
+    ("moment", "signum"),
+    [("importing", "SIGINT"), ("workers starting", "SIGINT"), ("workers starting", "SIGTERM")],
+)
+def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(
+    tmp_path: Path, moment: str, signum: str
+) -> None:
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the command
-    still imports, or while its two worker processes import (seconds: torch, CasADi):
-    exit 130, no traceback anywhere (the workers' own stderr included), and every trial
-    pending or interrupted, never failed; after the workers' start --resume runs them all."""
+    still imports, or while its two worker processes import (seconds: torch, CasADi), and
+    SIGTERM to the parent alone then (which passes it on): exit 128 + n, no traceback
+    anywhere (the workers' own stderr included), and every trial pending or interrupted,
+    never failed; after the workers' start --resume runs them all."""
     import os
     import signal
     import time
@@ -613,15 +619,18 @@ def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(tmp_path: Path, moment
             time.sleep(0.02)
         assert _spawned_children(proc.pid) >= 2
         time.sleep(0.3)  # into the workers' imports, which take seconds
-    os.killpg(proc.pid, signal.SIGINT)
+    if signum == "SIGINT":
+        os.killpg(proc.pid, signal.SIGINT)
+    else:
+        proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 130, stderr
+    assert proc.returncode == 128 + getattr(signal, signum), stderr
     assert "Traceback" not in stdout + stderr, stderr
     assert "Aborted" not in stderr
     if manifest.exists():
         statuses = {e["status"] for e in json.loads(manifest.read_text())["trials"]}
         assert statuses <= {"pending", "interrupted"}, statuses
-    if moment == "workers starting":
+    if moment == "workers starting" and signum == "SIGINT":
         again = subprocess.run(
             [*command, "--resume"], capture_output=True, text=True, timeout=300
         )  # fmt: skip
