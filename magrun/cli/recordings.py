@@ -186,11 +186,9 @@ def figures(
         click.echo(f"unreadable: {problem}", err=True)
     if data.trials.empty:
         raise InputError(f"{recordings}: no recordings found (run `magrun run PROTOCOL` first)")
-    source = "the paper's rig (the fit shipped with magrun)" if z is not None else None
+    source = str(zernike_data) if zernike_data is not None else None
     if z is not None and zernike_data is None:
         z, source = _zernike_of_systems(data, z)
-    elif zernike_data is not None:
-        source = str(zernike_data)
     written = analysis.figures.draw_all(data, out, zernike_data=z)
     results = analysis.write_results(data, out / "results.csv")
     replays = _replays(recordings, out, written)
