@@ -27,6 +27,14 @@ def write_text(path: str | Path, text: str) -> None:
     tmp.replace(path)
 
 
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically."""
+    path = Path(path)
+    tmp = _part(path)
+    tmp.write_bytes(data)
+    tmp.replace(path)
+
+
 def write_npz(path: str | Path, arrays: Mapping[str, NDArray[Any]]) -> None:
     """Write a compressed ``.npz`` of named arrays to ``path`` atomically (no pickles)."""
     path = Path(path)

@@ -36,6 +36,7 @@ import math
 import multiprocessing
 import os
 import shutil
+import sys
 import threading
 import time
 import traceback
@@ -66,16 +67,22 @@ ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, tick
 
 
 @contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """One torch thread per trial: results then do not depend on the thread count."""
-    import torch
+def _inference_threads(n: int) -> Iterator[None]:
+    """``n`` threads for the tracker's network per trial (ONNX Runtime, and torch where a
+    caller has loaded it): results then do not depend on the thread count. Tracking needs
+    no torch (:mod:`magrun.tracking.inference`); this never imports it."""
+    from magrun.tracking.inference import inference_threads
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    if torch is not None:
+        torch.set_num_threads(n)
     try:
-        yield
+        with inference_threads(n):
+            yield
     finally:
-        torch.set_num_threads(before)
+        if torch is not None and before is not None:
+            torch.set_num_threads(before)
 
 
 def execute_trial(
@@ -103,7 +110,8 @@ def execute_trial(
     parts = None
     sim = rig == "sim"
     try:
-        parts = assemble(trial, rig)
+        with _inference_threads(1):  # the tracker's network is made here, with its threads
+            parts = assemble(trial, rig)
         protocol, scene, robot = trial.protocol, parts.scene, parts.robot
         controller, the_rig, tracker = parts.controller, parts.rig, parts.tracker
         meta = {
@@ -161,7 +169,7 @@ def execute_trial(
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )
         placement = loop_placement(cores[0] if cores else None) if not sim else nullcontext("")
-        with _torch_threads(1), placement as scheduling:
+        with _inference_threads(1), placement as scheduling:
             log = parts.run(
                 on_tick=recorder.log, progress=tick_progress,
                 stop=lambda: interrupt.requested() is not None,
@@ -315,10 +323,8 @@ def _worker_init(progress: Any = None) -> None:
     interrupt.install_in_worker()
     _progress_queue = progress
     import cv2
-    import torch
 
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
+    cv2.setNumThreads(1)  # the tracker's network: one thread per trial (_inference_threads)
 
 
 def _pool_progress(q: Any) -> ProgressFn:

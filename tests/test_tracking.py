@@ -28,27 +28,21 @@ from magrun.tracking.dataset import (
     real_samples,
     synthetic_sample,
 )
+from magrun.tracking.export import fuse_batch_norm, model_net, torch_net
 from magrun.tracking.fluoroscopy import FluoroscopyMimic
-from magrun.tracking.inference import heatmap_net, to_array
-from magrun.tracking.keypoints import axial_offsets, fiducials, pose_from_keypoints
-from magrun.tracking.render import PINK, YELLOW, Renderer, _Canvas
-from magrun.tracking.tracker import (
-    Tracker,
-    default_weights_path,
-    fuse_batch_norm,
-    select_keypoints,
-)
-from magrun.tracking.train import TrainConfig, make_batch, train
-from magrun.tracking.unet import (
+from magrun.tracking.heatmaps import (
     HEATMAP_SIGMA,
-    KeypointUNet,
     gaussian_heatmaps,
-    load_weights,
     peak_candidates,
     refine_peak,
-    save_weights,
-    to_input,
 )
+from magrun.tracking.inference import graph_net, to_array
+from magrun.tracking.keypoints import axial_offsets, fiducials, pose_from_keypoints
+from magrun.tracking.render import PINK, YELLOW, Renderer, _Canvas
+from magrun.tracking.tracker import Tracker, default_weights_path, select_keypoints
+from magrun.tracking.train import TrainConfig, make_batch, train
+from magrun.tracking.unet import KeypointUNet, load_weights, save_weights, to_input
+from magrun.tracking.weights import read_weights
 
 CLEAN = CameraConfig(blur_px=0.0, noise=0.0, lighting=0.0)
 
@@ -331,18 +325,19 @@ def test_batch_norm_fusion_preserves_the_output(shipped: KeypointUNet) -> None:
 
 
 @pytest.mark.parametrize("side", [(64, 64), (96, 128), (256, 256)])
-def test_onnx_runtime_computes_the_torch_heatmaps(shipped: KeypointUNet, side) -> None:
-    """The exported graph at any input size (the window, a search) and batch: the same maps,
-    1e-4 absolute (peaks are ~1)."""
+def test_the_shipped_onnx_graph_computes_the_torch_heatmaps(shipped: KeypointUNet, side) -> None:
+    """The graph shipped beside the weights (what tracking runs) at any input size (the
+    window, a search) and batch: torch's maps to 1e-4 absolute (peaks are ~1)."""
     images = np.random.default_rng(1).integers(0, 256, (2, *side, 3), dtype=np.uint8)
-    fused = fuse_batch_norm(shipped)
     x = to_array(images)
     assert_allclose(x, to_input(images).numpy())
-    ref = heatmap_net(fused, "torch")(x)
+    ref = torch_net(fuse_batch_norm(shipped))(x)
     assert ref.shape == (2, 3, *side)
-    assert_allclose(heatmap_net(fused, "onnx")(x), ref, atol=1e-4)
+    net = graph_net(read_weights(default_weights_path()))
+    assert (net.backend, net.stride) == ("onnx", shipped.stride)
+    assert_allclose(net.run(x), ref, atol=1e-4)
     with pytest.raises(ValueError, match="unknown backend"):
-        heatmap_net(fused, "tensorflow")  # type: ignore[arg-type]
+        model_net(shipped, "tensorflow")  # type: ignore[arg-type]
 
 
 def test_tracker_backends_agree_on_rendered_frames(shipped, robots) -> None:

@@ -50,12 +50,11 @@ def bench_tick(
     latency charged.
     """
     import cv2
-    import torch
 
     from magrun.protocol import Conditions, Sweep, load_protocol
+    from magrun.tracking.inference import inference_threads
     from magrun.trial import assemble, single_trial
 
-    torch.set_num_threads(1)
     cv2.setNumThreads(1)
     protocol = load_protocol(protocol_file)
     first = next(t for t in protocol.expand() if t.method == method)
@@ -71,7 +70,8 @@ def bench_tick(
             "duration_s": (ticks - 1) / controller.rate_hz,  # ticks at 0, dt, …
         }
     )
-    parts = assemble(single_trial(protocol, method, first.seed))
+    with inference_threads(1):  # the tracker's network, as in a run's trial
+        parts = assemble(single_trial(protocol, method, first.seed))
     stages: dict[str, list[float]] = {name: [] for name in STAGES}
     rig, controller_ = parts.rig, parts.controller
     rig.observe = _timed(rig.observe, stages["render"])  # type: ignore[method-assign]

@@ -78,8 +78,8 @@ def tracker_train(
     from dataclasses import replace
 
     from magrun.tracking.camera import CameraConfig
-    from magrun.tracking.dataset import real_samples
-    from magrun.tracking.train import TrainConfig, tracked_robots, train
+    from magrun.tracking.dataset import real_samples, tracked_robots
+    from magrun.tracking.train import TrainConfig, train
     from magrun.tracking.unet import load_weights, save_weights
 
     if (images is None) != (labels is None) or (images is not None and px_per_mm is None):
@@ -122,7 +122,46 @@ def tracker_train(
         "magrun": __version__,
     }
     save_weights(net, out, meta)
-    click.echo(f"wrote {out} ({meta['train_s']} s)")
+    graph, _ = _export(out)
+    click.echo(f"wrote {out} ({meta['train_s']} s) and its ONNX graph {graph}")
+
+
+def _export(weights: Path, out: Path | None = None) -> tuple[Path, float]:
+    """:func:`magrun.tracking.export.export_graph`, its errors as InputError."""
+    from magrun.tracking.inference import TRAIN_EXTRA
+
+    try:
+        from magrun.tracking.export import export_graph
+    except ImportError as exc:
+        raise InputError(f"exporting the tracker's graph needs torch: {TRAIN_EXTRA}") from exc
+    try:
+        return export_graph(weights, out)
+    except (ValueError, OSError, KeyError) as exc:
+        raise InputError(f"{weights}: {exc}") from exc
+
+
+@tracker.command("export")
+@click.argument("weights", type=InputFile())
+@click.option(
+    "--out",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Where to write the graph [default: beside WEIGHTS, suffix .onnx].",
+)
+@click.option("--overwrite", is_flag=True, help="Replace an existing graph.")
+def tracker_export(weights: Path, out: Path | None, overwrite: bool) -> None:
+    """Write the ONNX graph of the tracker WEIGHTS (.npz), which tracking runs.
+
+    The graph is exported from torch's model (batch norm folded in), checked to give the
+    same heat maps on fixed windows, and stamped with the weights' digest, so that a graph
+    left beside other weights is not used. `magrun tracker train` writes it too; this is for
+    weights trained elsewhere or before. Needs torch (the train extra).
+    """
+    target = out if out is not None else weights.with_suffix(".onnx")
+    if target.exists() and not overwrite:
+        raise InputError(f"{target} exists; add --overwrite to replace it")
+    graph, worst = _export(weights, out)
+    click.echo(f"wrote {graph} (its heat maps agree with torch's to {worst:.0e})")
 
 
 @tracker.command("run")
@@ -213,19 +252,20 @@ def tracker_eval(
     Position error (mm), orientation error (degrees), failure rate (no pose, or more than
     1 mm off) and time per frame (ms), over both robots and each, on the default camera.
     """
+    from magrun.tracking.dataset import tracked_robots
     from magrun.tracking.evaluate import evaluate
-    from magrun.tracking.tracker import default_weights_path
-    from magrun.tracking.train import tracked_robots
-    from magrun.tracking.unet import load_weights
+    from magrun.tracking.tracker import default_weights_path, load_net
+    from magrun.tracking.weights import read_weights
 
     path = weights if weights is not None else default_weights_path()
     try:
-        model, meta = load_weights(path)
+        file = read_weights(path)
+        net = load_net(file)
     except (ValueError, OSError, KeyError) as exc:
         raise InputError(f"{path}: cannot load weights: {exc}") from exc
     progress = Progress("evaluating", not as_json)
-    report = evaluate(model, tracked_robots(), frames, search_frames, seed=seed, progress=progress)
-    report = {"weights": str(path), "trained": meta, **report}
+    report = evaluate(net, tracked_robots(), frames, search_frames, seed=seed, progress=progress)
+    report = {"weights": str(path), "trained": file.meta, **report}
     if as_json:
         click.echo(json.dumps(report))
         return

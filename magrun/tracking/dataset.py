@@ -37,6 +37,18 @@ U8 = NDArray[np.uint8]
 CROP = 96  # px, the tracker's input window
 
 
+#: the robots the tracker learns and is evaluated on: the paper's two, which the default
+#: camera frames (robots.yaml's others, e.g. micro_magnet for small workspaces, it does not)
+TRACKED_ROBOTS = ("magnet", "drug_delivery")
+
+
+def tracked_robots() -> list[RobotParams]:
+    """:data:`TRACKED_ROBOTS` from robots.yaml."""
+    from magrun.robot import load_robot
+
+    return [load_robot(name) for name in TRACKED_ROBOTS]
+
+
 @dataclass(frozen=True)
 class Sample:
     """One labelled image: ``keypoints`` (3, 2) in px (u, v), NaN when no robot is shown."""

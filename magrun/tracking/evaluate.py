@@ -19,26 +19,28 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
 from magrun.angles import wrap_angle
 from magrun.robot import RobotParams
 from magrun.scene import Walls
 from magrun.tracking.camera import DEFAULT_CAMERA, Camera, CameraConfig
 from magrun.tracking.dataset import channel_walls
+from magrun.tracking.inference import UNetNet
 from magrun.tracking.render import Renderer
 from magrun.tracking.tracker import Tracker
-from magrun.tracking.unet import KeypointUNet
+
+if TYPE_CHECKING:
+    from magrun.tracking.unet import KeypointUNet
 
 GROSS_ERROR = 1e-3  # m
 EVAL_SEED = 10_000  # training draws from small seeds; evaluation from here on
 
 
 def evaluate(
-    model: KeypointUNet,
+    model: UNetNet | KeypointUNet,
     robots: Sequence[RobotParams],
     frames: int = 1000,
     search_frames: int = 100,
@@ -46,7 +48,8 @@ def evaluate(
     seed: int = EVAL_SEED,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, Any]:
-    """Accuracy (mm, degrees), failure rate and time per frame (ms), overall and per robot."""
+    """Accuracy (mm, degrees), failure rate and time per frame (ms), overall and per robot,
+    of the network ``model`` (a weights file's graph, or a torch model: run by ONNX Runtime)."""
     rng = np.random.default_rng(seed)
     cam = Camera(camera)
     trackers = {r.name: Tracker(model, cam, r) for r in robots}
@@ -107,5 +110,5 @@ def evaluate(
             r.name: summary([x for x in tracking if x["robot"] == r.name]) for r in robots
         },
         "search": summary(searching) if searching else None,
-        "torch_threads": torch.get_num_threads(),
+        "backend": next(iter(trackers.values())).backend,
     }  # fmt: skip

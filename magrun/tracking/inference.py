@@ -1,4 +1,4 @@
-"""Running the keypoint UNet for tracking: ONNX Runtime by default, torch as the reference.
+"""Running the keypoint UNet for tracking: its ONNX graph in ONNX Runtime, no torch.
 
 The tracker calls the network once per camera frame on a 64 px window, one image at a time,
 in the control loop. At that size torch's eager mode spends as much time dispatching the ~30
@@ -7,34 +7,69 @@ ONNX Runtime, which runs the same graph with fused convolution + ReLU kernels an
 per-operator Python, 1.2 ms (BENCHMARKS.md, "Tracking"). Both compute the same function; their
 heat maps agree to ~1e-5 (tests/test_tracking.py).
 
-The ONNX graph is exported from the fused torch model in memory (``torch.onnx.export``, sides
-and batch dynamic, so whole-frame searches run on the same graph) once per set of weights and
-process; nothing is written to disk and no file is ever loaded as code.
+The graph lies beside its weights (``unet.npz`` → ``unet.onnx``), exported from the fused
+torch model by ``magrun tracker train`` or ``magrun tracker export`` (:mod:`magrun.tracking.export`,
+which checks the two agree) and stamped with the weights' digest
+(:meth:`~magrun.tracking.weights.WeightsFile.digest`): running, tracking and analysing need no
+torch. Weights without their graph are exported in memory where torch is installed (the
+``train`` extra), and refused with a message saying how to export them where it is not.
 
-    >>> net = heatmap_net(fuse_batch_norm(model), backend="onnx")          # doctest: +SKIP
-    >>> net(to_array(window)).shape  # a (64, 64, 3) window                # doctest: +SKIP
+    >>> net = graph_net(read_weights("unet.npz"))                           # doctest: +SKIP
+    >>> net.run(to_array(window)).shape  # a (64, 64, 3) window             # doctest: +SKIP
     (1, 3, 64, 64)
 """
 
 from __future__ import annotations
 
-import hashlib
-import io
-import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import torch
 from numpy.typing import NDArray
-from torch import nn
 
-from magrun.tracking.unet import MEAN, SCALE
+from magrun.tracking.heatmaps import MEAN, SCALE
+from magrun.tracking.weights import WeightsFile
 
 F32 = NDArray[np.float32]
 HeatmapNet = Callable[[F32], F32]
 Backend = Literal["onnx", "torch"]
 BACKENDS: tuple[Backend, ...] = ("onnx", "torch")
+#: the ONNX graph's metadata key holding the digest of the weights it was exported from
+DIGEST_KEY = "magrun_weights_sha256"
+#: what to install for torch (training, exporting, the torch backend)
+TRAIN_EXTRA = "pip install -c constraints.txt -e '.[train]'"
+
+_threads: int | None = None
+
+
+@contextmanager
+def inference_threads(n: int) -> Iterator[None]:
+    """Networks made inside this block run on ``n`` intra-op threads (the runner: one per
+    trial, so results do not depend on the thread count); outside it, ONNX Runtime's
+    default (one per physical core)."""
+    global _threads
+    before, _threads = _threads, n
+    try:
+        yield
+    finally:
+        _threads = before
+
+
+@dataclass(frozen=True)
+class UNetNet:
+    """A runnable heat-map network: ``run`` maps float32 (B, 3, H, W) → (B, K, H, W), with H
+    and W multiples of ``stride``."""
+
+    run: HeatmapNet
+    stride: int
+    backend: Backend
+
+
+class MissingGraph(ValueError):
+    """Weights with no ONNX graph of their own beside them, and no torch to export one."""
 
 
 def to_array(images: NDArray[np.uint8]) -> F32:
@@ -46,71 +81,45 @@ def to_array(images: NDArray[np.uint8]) -> F32:
     return out
 
 
-def heatmap_net(
-    model: nn.Module, backend: Backend = "onnx", threads: int | None = None
-) -> HeatmapNet:
-    """``model`` (in eval mode) as a function of float32 arrays (B, 3, H, W) → (B, K, H, W).
-
-    ``threads``: intra-op threads of ONNX Runtime (default: torch's current setting, which
-    the runner sets to one per trial).
-    """
-    if backend == "torch":
-        return _torch_net(model)
-    if backend == "onnx":
-        return _onnx_net(model, torch.get_num_threads() if threads is None else threads)
-    raise ValueError(f"unknown backend {backend!r}; one of {', '.join(BACKENDS)}")
-
-
-def _torch_net(model: nn.Module) -> HeatmapNet:
-    def run(x: F32) -> F32:
-        with torch.inference_mode():
-            t = torch.from_numpy(x).contiguous(memory_format=torch.channels_last)
-            out: F32 = model(t).numpy()
-        return out
-
-    return run
-
-
-_ONNX_CACHE: dict[str, bytes] = {}
-
-
-def onnx_bytes(model: nn.Module) -> bytes:
-    """The ONNX graph of ``model`` (opset 17, batch and sides dynamic), cached by its weights."""
-    digest = hashlib.sha256()
-    for name, tensor in model.state_dict().items():
-        digest.update(name.encode())
-        digest.update(tensor.detach().cpu().numpy().tobytes())
-    key = digest.hexdigest()
-    if key not in _ONNX_CACHE:
-        buf = io.BytesIO()
-        axes = {0: "batch", 2: "height", 3: "width"}
-        with warnings.catch_warnings():  # the TorchScript exporter announces its successor
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                model,
-                (torch.zeros(1, 3, 64, 64),),
-                buf,  # type: ignore[arg-type]  # any binary file object works
-                input_names=["image"],
-                output_names=["heatmaps"],
-                dynamic_axes={"image": axes, "heatmaps": axes},
-                opset_version=17,
-                dynamo=False,
-            )
-        _ONNX_CACHE[key] = buf.getvalue()
-    return _ONNX_CACHE[key]
-
-
-def _onnx_net(model: nn.Module, threads: int) -> HeatmapNet:
+def onnx_net(graph: bytes | Path) -> tuple[HeatmapNet, dict[str, str]]:
+    """An ONNX Runtime session of ``graph`` (bytes, or a file) as a function, and the graph's
+    metadata. Raises ``ValueError`` for a file ONNX Runtime cannot load."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
-    options.intra_op_num_threads = max(threads, 1)
+    options.intra_op_num_threads = max(_threads, 1) if _threads is not None else 0
     options.inter_op_num_threads = 1
     options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    session = ort.InferenceSession(onnx_bytes(model), options, providers=["CPUExecutionProvider"])
+    model = str(graph) if isinstance(graph, Path) else graph
+    try:
+        session = ort.InferenceSession(model, options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ONNX Runtime's own exception types, one per kind of fault
+        raise ValueError(f"not a readable ONNX graph: {exc}") from exc
+    inputs = [i.name for i in session.get_inputs()]
+    if len(inputs) != 1:
+        raise ValueError(f"the graph takes {len(inputs)} inputs, not one image batch")
 
     def run(x: F32) -> F32:
-        out: F32 = session.run(None, {"image": x})[0]
+        out: F32 = session.run(None, {inputs[0]: x})[0]
         return out
 
-    return run
+    return run, dict(session.get_modelmeta().custom_metadata_map)
+
+
+def graph_net(weights: WeightsFile) -> UNetNet:
+    """The network of ``weights``: their ONNX graph beside them, checked to be theirs (its
+    digest), in ONNX Runtime.
+
+    Raises :class:`MissingGraph` where no graph of theirs lies beside them
+    (:func:`magrun.tracking.tracker.load_net` then exports one in memory where torch is
+    installed), ``ValueError`` for a graph that cannot be read."""
+    path = weights.graph_path
+    if not path.is_file():
+        raise MissingGraph(f"{weights.path}: it has no ONNX graph beside it ({path.name})")
+    try:
+        run, meta = onnx_net(path)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    if meta.get(DIGEST_KEY) != weights.digest():
+        raise MissingGraph(f"{weights.path}: {path.name} beside it was exported from other weights")
+    return UNetNet(run, weights.stride, "onnx")

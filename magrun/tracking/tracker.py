@@ -26,31 +26,64 @@ import math
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import torch
 from numpy.typing import ArrayLike, NDArray
-from torch import nn
 
 from magrun.robot import RobotParams
 from magrun.tracking.camera import DEFAULT_CAMERA, Camera
-from magrun.tracking.inference import Backend, heatmap_net, to_array
-from magrun.tracking.keypoints import pose_from_keypoints
-from magrun.tracking.unet import (
-    KeypointUNet,
-    load_weights,
-    peak_candidates,
-    refine_peak,
+from magrun.tracking.heatmaps import peak_candidates, refine_peak
+from magrun.tracking.inference import (
+    TRAIN_EXTRA,
+    Backend,
+    MissingGraph,
+    UNetNet,
+    graph_net,
+    to_array,
 )
+from magrun.tracking.keypoints import pose_from_keypoints
+from magrun.tracking.weights import WeightsFile, read_weights
+
+if TYPE_CHECKING:
+    from magrun.tracking.unet import KeypointUNet
 
 FloatArray = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 
 def default_weights_path() -> Path:
-    """The shipped weights, trained by ``magrun tracker train`` (see docs/tracking.md)."""
+    """The shipped weights, trained by ``magrun tracker train`` (see docs/tracking.md); their
+    ONNX graph, which tracking runs, lies beside them (``unet.onnx``)."""
     return Path(str(resources.files("magrun") / "tracking" / "data" / "unet.npz"))
+
+
+def load_net(weights: WeightsFile, backend: Backend = "onnx") -> UNetNet:
+    """The network of ``weights``: their ONNX graph (:func:`~magrun.tracking.inference.graph_net`);
+    with torch installed, where no graph of theirs lies beside them, one exported in memory;
+    and with ``backend`` ``"torch"``, torch's own model (the reference).
+
+    Raises :class:`~magrun.tracking.inference.MissingGraph` saying how to export the graph
+    where it is missing and torch is not installed."""
+    if backend not in ("onnx", "torch"):
+        raise ValueError(f"unknown backend {backend!r}; one of onnx, torch")
+    problem: MissingGraph | None = None
+    if backend == "onnx":
+        try:
+            return graph_net(weights)
+        except MissingGraph as exc:
+            problem = exc
+    try:
+        from magrun.tracking import export
+    except ImportError as exc:  # torch is the train extra
+        if problem is None:
+            raise MissingGraph(f"the torch backend needs torch: {TRAIN_EXTRA}") from exc
+        raise MissingGraph(
+            f"{problem}; `magrun tracker export {weights.path}` writes it "
+            f"(needs torch: {TRAIN_EXTRA})"
+        ) from exc
+    return export.weights_net(weights, backend)
 
 
 @dataclass(frozen=True)
@@ -86,7 +119,7 @@ def select_keypoints(
 
     A small network can answer "an end of the yellow half" for both the tail and the centre
     of the magnet robot; each map may then hold a second peak. Among all combinations of
-    candidate peaks (:func:`~magrun.tracking.unet.peak_candidates`), pick the one maximising
+    candidate peaks (:func:`~magrun.tracking.heatmaps.peak_candidates`), pick the one maximising
 
         h_tail + h_centre + h_head − w · (|‖head − tail‖ − L| / L + 2 ‖centre − mid‖ / L)
 
@@ -106,31 +139,6 @@ def select_keypoints(
     return np.array([tp[i], cp[j], hp[k]]), np.array([th[i], ch[j], hh[k]])
 
 
-def fuse_batch_norm(model: KeypointUNet) -> nn.Module:
-    """An inference copy of ``model`` with every BatchNorm folded into its convolution."""
-    fused = KeypointUNet(model.widths, model.head.out_channels)
-    fused.load_state_dict(model.state_dict())
-    fused.eval()
-    for block in (*fused.encoders, *fused.decoders):
-        assert isinstance(block, nn.Sequential)
-        layers = list(block)
-        out: list[nn.Module] = []
-        i = 0
-        while i < len(layers):
-            layer = layers[i]
-            nxt = layers[i + 1] if i + 1 < len(layers) else None
-            if isinstance(layer, nn.Conv2d) and isinstance(nxt, nn.BatchNorm2d):
-                out.append(nn.utils.fusion.fuse_conv_bn_eval(layer, nxt))
-                i += 2
-            else:
-                out.append(layer)
-                i += 1
-        block._modules.clear()
-        for k, m in enumerate(out):
-            block.add_module(str(k), m)
-    return fused.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-
-
 #: border kept around the robot in the tracking window, px at the model's scale
 WINDOW_MARGIN_PX = 12
 
@@ -140,8 +148,10 @@ class Tracker:
 
     Parameters
     ----------
-    model : KeypointUNet
-        Trained weights (see :meth:`default`).
+    model : UNetNet or KeypointUNet
+        The trained network (:meth:`default` loads the shipped one, or a weights file's):
+        a runnable graph (:func:`~magrun.tracking.inference.weights_net`), or a torch model
+        (needs torch; run by ``backend``).
     camera : Camera
         Frame size and the px ↔ m mapping (the calibration, on a real rig).
     robot : RobotParams
@@ -159,13 +169,13 @@ class Tracker:
         The scale the model was trained at. Frames at another scale (a real camera) are
         resized to it before tracking; results are reported in the frame's own pixels.
     backend : {"onnx", "torch"}
-        What runs the UNet (:mod:`magrun.tracking.inference`): ONNX Runtime (default,
-        ~1.8× faster per window here) or torch (the reference). Same heat maps to ~1e-5.
+        What runs a torch ``model``: ONNX Runtime (default, ~1.8× faster per window here) or
+        torch (the reference). Same heat maps to ~1e-5. A ``UNetNet`` says its own.
     """
 
     def __init__(
         self,
-        model: KeypointUNet,
+        model: UNetNet | KeypointUNet,
         camera: Camera,
         robot: RobotParams,
         min_confidence: float = 0.3,
@@ -173,8 +183,12 @@ class Tracker:
         model_px_per_mm: float = DEFAULT_CAMERA.px_per_mm,
         backend: Backend = "onnx",
     ) -> None:
-        self.backend = backend
-        self._net = heatmap_net(fuse_batch_norm(model), backend)
+        if not isinstance(model, UNetNet):  # a torch model (training, evaluation)
+            from magrun.tracking.export import model_net
+
+            model = model_net(model, backend)
+        self.backend = model.backend
+        self._net = model.run
         self.stride = model.stride
         self.camera = camera
         cfg = camera.config
@@ -208,10 +222,12 @@ class Tracker:
         weights: str | Path | None = None,
         backend: Backend = "onnx",
     ) -> Tracker:
-        """A tracker with the shipped weights (or those in ``weights``)."""
-        model, meta = load_weights(weights if weights is not None else default_weights_path())
-        px_per_mm = meta.get("px_per_mm", 2.5)
-        return cls(model, camera, robot, model_px_per_mm=px_per_mm, backend=backend)
+        """A tracker with the shipped weights (or those in ``weights``), run from their ONNX
+        graph (``backend`` ``"torch"``: by torch). Raises ``ValueError`` (or its subclass
+        :class:`~magrun.tracking.inference.MissingGraph`) saying what is wrong with them."""
+        file = read_weights(weights if weights is not None else default_weights_path())
+        net = load_net(file, backend)
+        return cls(net, camera, robot, model_px_per_mm=file.px_per_mm)
 
     def reset(self) -> None:
         """Forget the previous pose (a new trial)."""

@@ -23,21 +23,10 @@ from numpy.typing import NDArray
 from magrun.robot import RobotParams
 from magrun.tracking.camera import DEFAULT_CAMERA, CameraConfig
 from magrun.tracking.dataset import CROP, Sample, crop_sample, synthetic_sample
-from magrun.tracking.unet import KeypointUNet, gaussian_heatmaps, to_input
+from magrun.tracking.heatmaps import gaussian_heatmaps
+from magrun.tracking.unet import KeypointUNet, to_input
 
 FloatArray = NDArray[np.float64]
-
-
-#: the robots the tracker learns and is evaluated on: the paper's two, which the default
-#: camera frames (robots.yaml's others, e.g. micro_magnet for small workspaces, it does not)
-TRACKED_ROBOTS = ("magnet", "drug_delivery")
-
-
-def tracked_robots() -> list[RobotParams]:
-    """:data:`TRACKED_ROBOTS` from robots.yaml."""
-    from magrun.robot import load_robot
-
-    return [load_robot(name) for name in TRACKED_ROBOTS]
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,178 @@
+"""The main job without torch: the tracker's ONNX graph shipped beside its weights, checked to
+be theirs, exported and refused as the docs say (torch is the ``train`` extra)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from numpy.testing import assert_allclose
+
+from magrun.cli import cli
+from magrun.tracking.export import AGREEMENT, check_windows, fuse_batch_norm, torch_net
+from magrun.tracking.inference import DIGEST_KEY, MissingGraph, graph_net, onnx_net
+from magrun.tracking.tracker import default_weights_path, load_net
+from magrun.tracking.unet import load_weights, save_weights
+from magrun.tracking.weights import read_weights
+
+ROOT = Path(__file__).resolve().parents[1]
+BLOCKED = ("torch", "onnx")
+
+
+def _without_torch(tmp_path: Path) -> dict[str, str]:
+    """An environment in which ``import torch`` (and ``onnx``) fails, in the command and in
+    every process it spawns: a package of that name first on PYTHONPATH that raises."""
+    block = tmp_path / "blocked"
+    for name in BLOCKED:
+        (block / name).mkdir(parents=True)
+        (block / name / "__init__.py").write_text(
+            f"raise ImportError('{name} is blocked: the run path must not import it')\n"
+        )
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(block), env.get("PYTHONPATH")]))
+    return env
+
+
+def _magrun(env: dict[str, str], *args: object, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "magrun.console", *map(str, args)],
+        env=env, cwd=cwd, capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+
+
+def _weights_copy(tmp_path: Path, perturb: float = 0.0) -> Path:
+    """The shipped weights in ``tmp_path`` (no graph beside them), their head's bias moved by
+    ``perturb``."""
+    model, meta = load_weights(default_weights_path())
+    with torch.no_grad():
+        model.head.bias += perturb
+    path = tmp_path / "w" / "unet.npz"
+    save_weights(model, path, {k: v for k, v in meta.items() if k != "widths"})
+    return path
+
+
+def test_the_blocker_blocks(tmp_path) -> None:
+    """The check below is only as good as its blocker: torch cannot be imported under it."""
+    run = subprocess.run(
+        [sys.executable, "-c", "import torch"],
+        env=_without_torch(tmp_path), capture_output=True, text=True,
+    )  # fmt: skip
+    assert run.returncode == 1
+    assert "torch is blocked" in run.stderr
+
+
+def _main_job(env: dict[str, str], out: Path) -> list[dict[str, str]]:
+    """The README's main job, shortened to 2 s a trial, into ``out``: results.csv's rows."""
+    run = _magrun(
+        env, "run", ROOT / "protocols/rate_under_noise.yaml", "--quick",
+        "--set", "quick.duration_s=2", "--out", out, cwd=out.parent,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "blocked" not in run.stdout + run.stderr
+    figures = _magrun(env, "figures", out, cwd=out.parent)
+    assert figures.returncode == 0, figures.stdout + figures.stderr
+    manifest = (out / "rate_under_noise" / "manifest.json").read_text()
+    assert '"status": "ok"' in manifest
+    assert '"failed"' not in manifest
+    with open(out / "figures" / "results.csv", newline="", encoding="utf-8") as fh:
+        return sorted(csv.DictReader(fh), key=lambda r: r["method"])
+
+
+def test_the_main_job_runs_tracks_and_makes_its_figures_without_torch(tmp_path) -> None:
+    """The main job where importing torch or onnx fails (in the run's worker processes
+    too): camera tracking through the shipped graph, recordings, figures; and the same
+    results, to the last digit, as in an environment with torch."""
+    from mcap.reader import make_reader
+
+    lean = _main_job(_without_torch(tmp_path), tmp_path / "lean")
+    full = _main_job(dict(os.environ), tmp_path / "full")
+    assert [r["method"] for r in lean] == ["baseline2", "proposed"]
+    columns = ["rms_position_mm", "rms_orientation_deg", "measurements", "tracking_lost"]
+    assert [[r[c] for c in columns] for r in lean] == [[r[c] for c in columns] for r in full]
+    for row in lean:
+        with open(tmp_path / "lean" / row["path"], "rb") as fh:
+            [trial] = [m for m in make_reader(fh).iter_metadata() if m.name == "trial"]
+        assert trial.metadata["feedback"] == "camera"
+
+
+def test_the_shipped_graph_is_stamped_with_its_weights() -> None:
+    weights = read_weights(default_weights_path())
+    _, meta = onnx_net(weights.graph_path)
+    assert meta[DIGEST_KEY] == weights.digest()
+    assert len(weights.digest()) == 64
+
+
+def test_a_graph_beside_other_weights_is_not_used(tmp_path) -> None:
+    """Retrained weights with the old graph beside them: the graph is refused; with torch
+    installed the weights' own graph is exported in memory, and it computes their maps."""
+    path = _weights_copy(tmp_path, perturb=0.5)
+    shutil.copy(default_weights_path().with_suffix(".onnx"), path.with_suffix(".onnx"))
+    weights = read_weights(path)
+    with pytest.raises(MissingGraph, match="exported from other weights"):
+        graph_net(weights)
+    net = load_net(weights)
+    model, _ = load_weights(path)
+    x = check_windows()
+    assert_allclose(net.run(x), torch_net(fuse_batch_norm(model))(x), atol=AGREEMENT)
+    shipped = graph_net(read_weights(default_weights_path()))
+    assert np.max(np.abs(net.run(x) - shipped.run(x))) > 0.1  # the perturbation shows
+
+
+def test_tracker_export_writes_a_checked_graph_and_never_overwrites_unasked(tmp_path) -> None:
+    path = _weights_copy(tmp_path, perturb=0.25)
+    runner = CliRunner()
+    first = runner.invoke(cli, ["tracker", "export", str(path)])
+    assert first.exit_code == 0, first.output
+    graph = path.with_suffix(".onnx")
+    assert f"wrote {graph}" in first.output
+    weights = read_weights(path)
+    model, _ = load_weights(path)
+    x = check_windows(seed=3)
+    assert_allclose(graph_net(weights).run(x), torch_net(fuse_batch_norm(model))(x), atol=1e-4)
+    before = graph.read_bytes()
+    again = runner.invoke(cli, ["tracker", "export", str(path)])
+    assert again.exit_code == 2
+    assert f"{graph} exists; add --overwrite" in again.output
+    assert graph.read_bytes() == before
+    assert runner.invoke(cli, ["tracker", "export", str(path), "--overwrite"]).exit_code == 0
+
+
+def _one_frame(tmp_path: Path) -> Path:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "0001.png"), np.full((96, 96, 3), 128, np.uint8))
+    return frames
+
+
+def test_weights_without_a_graph_and_without_torch_say_how_to_export(tmp_path) -> None:
+    path = _weights_copy(tmp_path)
+    frames = _one_frame(tmp_path)
+    run = _magrun(
+        _without_torch(tmp_path), "tracker", "run", frames, "--px-per-mm", 2.5,
+        "--weights", path, cwd=tmp_path,
+    )  # fmt: skip
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert "Traceback" not in run.stderr
+    assert "has no ONNX graph beside it (unet.onnx)" in run.stderr
+    assert f"magrun tracker export {path}" in run.stderr
+    assert "[train]" in run.stderr
+
+
+def test_a_corrupt_graph_is_a_clear_error(tmp_path) -> None:
+    path = _weights_copy(tmp_path)
+    path.with_suffix(".onnx").write_bytes(b"\x08\x07not a graph" * 50)
+    run = CliRunner().invoke(
+        cli, ["tracker", "run", str(_one_frame(tmp_path)), "--px-per-mm", "2.5",
+              "--weights", str(path)],
+    )  # fmt: skip
+    assert run.exit_code == 2, run.output
+    assert "unet.onnx: not a readable ONNX graph" in run.output
