@@ -644,16 +644,12 @@ def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
         raise RunError(str(exc)) from exc
 
 
-def build_controller(
-    trial: Trial,
-    system: System | None = None,
-    tune: Callable[[ControlConfig], ControlConfig] | None = None,
-) -> ControllerParts:
-    """``trial``'s scene, robot, tuning, free space and controller, on ``system`` (default:
-    the protocol's): the part of :func:`assemble` that needs no rig (the replay builds only
-    this)."""
+def controller_tuning(
+    trial: Trial, system: System
+) -> tuple[Scene, RobotParams, ControlConfig, Trajectory]:
+    """``trial``'s scene, robot, controller configuration and the reference its controller
+    follows, on ``system``: everything :func:`build_controller` builds the controller from."""
     protocol = trial.protocol
-    system = system or system_of(protocol)
     coils = system.coils
     scene = build_scene(protocol, coils)
     robot = protocol.robot_params()
@@ -681,6 +677,21 @@ def build_controller(
         )  # fmt: skip
     else:
         config = two_layer_tuning(config, protocol.controller, coils, robot)
+    return scene, robot, config, planned
+
+
+def build_controller(
+    trial: Trial,
+    system: System | None = None,
+    tune: Callable[[ControlConfig], ControlConfig] | None = None,
+) -> ControllerParts:
+    """``trial``'s scene, robot, tuning, free space and controller, on ``system`` (default:
+    the protocol's): the part of :func:`assemble` that needs no rig (the replay builds only
+    this)."""
+    protocol = trial.protocol
+    system = system or system_of(protocol)
+    coils = system.coils
+    scene, robot, config, planned = controller_tuning(trial, system)
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)

@@ -176,3 +176,56 @@ def test_a_corrupt_graph_is_a_clear_error(tmp_path) -> None:
     )  # fmt: skip
     assert run.exit_code == 2, run.output
     assert "unet.onnx: not a readable ONNX graph" in run.output
+
+
+# -- magrun build -------------------------------------------------------------------------------
+
+
+def _libraries(cache: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in (cache / "casadi").glob("*.so")}
+
+
+def test_build_compiles_ahead_and_a_second_build_reuses_the_cache(tmp_path, monkeypatch) -> None:
+    """A fresh cache: the quick run's two configurations (proposed, PID) built, the NMPC's
+    kernel among the libraries; built again: the same libraries, none rebuilt; then a run of
+    the same protocol compiles nothing either."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(cache))
+    protocol = str(ROOT / "protocols/rate_under_noise.yaml")
+    runner = CliRunner()
+    first = runner.invoke(cli, ["build", protocol, "--quick"])
+    assert first.exit_code == 0, first.output
+    assert "rate_under_noise: 2 controller configurations" in first.output
+    assert f"cache: {cache}" in first.output
+    built = _libraries(cache)
+    assert any(name.startswith("nmpc_rti-") for name in built), built
+    second = runner.invoke(cli, ["build", protocol, "--quick"])
+    assert second.exit_code == 0, second.output
+    assert _libraries(cache) == built
+    out = tmp_path / "rec"
+    ran = runner.invoke(
+        cli, ["run", protocol, "--quick", "--set", "quick.duration_s=1", "--out", str(out)]
+    )
+    assert ran.exit_code == 0, ran.output
+    assert _libraries(cache) == built
+
+
+def test_build_without_a_compiler_says_so_and_still_succeeds(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("MAGRUN_COMPILE", "0")
+    result = CliRunner().invoke(cli, ["build", str(ROOT / "protocols/spine.yaml")])
+    assert result.exit_code == 0, result.output
+    assert "spine: 1 controller configuration\n" in result.output
+    assert "no C compiler found" in result.output
+    assert "the same results" in result.output
+    assert not (tmp_path / "cache" / "casadi").exists()
+
+
+def test_build_of_a_bad_protocol_names_the_file_and_line(tmp_path) -> None:
+    bad = tmp_path / "bad.yaml"
+    text = (ROOT / "protocols/spine.yaml").read_text().replace("trials: 3", "trials: -3")
+    bad.write_text(text)
+    result = CliRunner().invoke(cli, ["build", str(bad)])
+    assert result.exit_code == 2
+    line = 1 + text.splitlines().index("trials: -3")
+    assert f"bad.yaml:{line}: trials" in result.output

@@ -11,6 +11,7 @@ library (the work lives in :mod:`magrun` and :mod:`analysis`).
     magrun tracker run clip.mp4 --px-per-mm 4.2 --out poses.csv    # track a lab's footage
     magrun bench nmpc --json                       # NMPC solve times, Zernike vs lookup table
     magrun validate protocols/*.yaml               # check protocols before running anything
+    magrun build protocols/spine.yaml              # compile ahead what its trials compile
     magrun run protocols/rate.yaml --jobs 2        # run, record MCAP + Rerun, manifest
     magrun view recordings/rate/proposed_rate-3hz/trial-0.rrd      # open in the Rerun viewer
     magrun figures recordings --out figures        # paper figures, results.csv, report.md
@@ -26,6 +27,7 @@ library (the work lives in :mod:`magrun` and :mod:`analysis`).
 :mod:`.identify`       ``identify``
 :mod:`.bench`          ``bench nmpc | tick | recorder | sigkill | campaign | rig``
 :mod:`.rig`            ``rig-emulator``
+:mod:`.build`          ``build``
 :mod:`.common`         the input-error exit, progress output, loading users' files
 =====================  ==================================================================
 
@@ -41,6 +43,7 @@ import click
 
 from magrun import __version__
 from magrun.cli.bench import bench
+from magrun.cli.build import build_cmd
 from magrun.cli.common import INPUT_ERROR, InputError
 from magrun.cli.field import field
 from magrun.cli.identify import identify_cmd
@@ -62,7 +65,7 @@ def cli() -> None:
 
 for command in (
     field, track, tracker, validate, protocol_group, run, view, recover_cmd, figures, replay,
-    identify_cmd, bench, rig_emulator,
+    identify_cmd, bench, rig_emulator, build_cmd,
 ):  # fmt: skip
     cli.add_command(command)
 
