@@ -17,8 +17,13 @@ from magrun.robot import RobotParams, load_robot
 
 @pytest.fixture(scope="session", autouse=True)
 def compiled_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """Compiled CasADi libraries go to this session's own cache (magrun.compiled)."""
-    os.environ["MAGRUN_CACHE_DIR"] = str(tmp_path_factory.mktemp("magrun-cache"))
+    """Compiled CasADi libraries and the plant's Numba code: the machine's cache
+    (magrun.compiled), so a second test session, or one after `magrun build`, reuses what an
+    earlier one compiled. A library is keyed by its generated source, the compiler command and
+    the CasADi version, so it is reused only where it is the same. MAGRUN_TEST_FRESH_CACHE=1
+    gives the session a cache of its own (the tests that compile on purpose make their own)."""
+    if os.environ.get("MAGRUN_TEST_FRESH_CACHE") == "1":
+        os.environ["MAGRUN_CACHE_DIR"] = str(tmp_path_factory.mktemp("magrun-cache"))
 
 
 @pytest.fixture(scope="session")

@@ -34,8 +34,9 @@ def _without_torch(tmp_path: Path) -> dict[str, str]:
     block = tmp_path / "blocked"
     for name in BLOCKED:
         (block / name).mkdir(parents=True)
-        (block / name / "__init__.py").write_text(
-            f"raise ImportError('{name} is blocked: the run path must not import it')\n"
+        (block / name / "__init__.py").write_text(  # as Python says a module is missing
+            f"raise ModuleNotFoundError('{name} is blocked: the run path must not import it',"
+            f" name='{name}')\n"
         )
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(block), env.get("PYTHONPATH")]))
@@ -67,7 +68,7 @@ def test_the_blocker_blocks(tmp_path) -> None:
         env=_without_torch(tmp_path), capture_output=True, text=True,
     )  # fmt: skip
     assert run.returncode == 1
-    assert "torch is blocked" in run.stderr
+    assert "ModuleNotFoundError: torch is blocked" in run.stderr
 
 
 def _main_job(env: dict[str, str], out: Path) -> list[dict[str, str]]:
@@ -165,6 +166,15 @@ def test_weights_without_a_graph_and_without_torch_say_how_to_export(tmp_path) -
     assert "has no ONNX graph beside it (unet.onnx)" in run.stderr
     assert f"magrun tracker export {path}" in run.stderr
     assert "[train]" in run.stderr
+
+
+def test_export_without_torch_says_what_to_install(tmp_path) -> None:
+    path = _weights_copy(tmp_path)
+    run = _magrun(_without_torch(tmp_path), "tracker", "export", path, cwd=tmp_path)
+    assert run.returncode == 2, run.stdout + run.stderr
+    assert "Traceback" not in run.stderr
+    assert "exporting the tracker's graph needs torch and onnx (torch)" in run.stderr
+    assert not path.with_suffix(".onnx").exists()
 
 
 def test_a_corrupt_graph_is_a_clear_error(tmp_path) -> None:

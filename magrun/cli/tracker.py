@@ -132,10 +132,12 @@ def _export(weights: Path, out: Path | None = None) -> tuple[Path, float]:
 
     try:
         from magrun.tracking.export import export_graph
-    except ImportError as exc:
-        raise InputError(f"exporting the tracker's graph needs torch: {TRAIN_EXTRA}") from exc
-    try:
+
         return export_graph(weights, out)
+    except ImportError as exc:  # torch or onnx: the train extra
+        raise InputError(
+            f"exporting the tracker's graph needs torch and onnx ({exc.name or exc}): {TRAIN_EXTRA}"
+        ) from exc
     except (ValueError, OSError, KeyError) as exc:
         raise InputError(f"{weights}: {exc}") from exc
 

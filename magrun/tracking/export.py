@@ -75,11 +75,10 @@ def torch_net(model: nn.Module) -> HeatmapNet:
     return run
 
 
-def onnx_bytes(model: nn.Module, digest: str = "") -> bytes:
-    """The ONNX graph of ``model`` (opset 17, batch and sides dynamic), its metadata naming
-    the weights' ``digest`` and the magrun version that exported it."""
-    import onnx
-
+def onnx_bytes(model: nn.Module, digest: str | None = None) -> bytes:
+    """The ONNX graph of ``model`` (opset 17, batch and sides dynamic); with ``digest``, its
+    metadata names the weights' digest and the magrun version that exported it (that needs
+    the ``onnx`` package, part of the ``train`` extra)."""
     buf = io.BytesIO()
     axes = {0: "batch", 2: "height", 3: "width"}
     with warnings.catch_warnings():  # the TorchScript exporter announces its successor
@@ -94,6 +93,10 @@ def onnx_bytes(model: nn.Module, digest: str = "") -> bytes:
             opset_version=17,
             dynamo=False,
         )
+    if digest is None:
+        return buf.getvalue()
+    import onnx
+
     graph = onnx.load_from_string(buf.getvalue())
     onnx.helper.set_model_props(graph, {DIGEST_KEY: digest, "magrun": __version__})
     return bytes(graph.SerializeToString())
@@ -117,7 +120,7 @@ def disagreement(graph: HeatmapNet, model: nn.Module) -> float:
 
 def model_net(model: KeypointUNet, backend: Backend = "onnx") -> UNetNet:
     """A torch ``model`` as a runnable network: fused, run by torch or (``"onnx"``) by its
-    graph exported in memory, stamped with no weights' digest."""
+    graph exported in memory (unstamped: it is never written)."""
     fused = fuse_batch_norm(model)
     if backend == "torch":
         return UNetNet(torch_net(fused), model.stride, "torch")
