@@ -4,7 +4,7 @@
 #
 #   bash tools/make_gallery.sh [OUT]      # OUT: where the recordings go (default recordings/gallery)
 #
-# About 25-30 minutes with two workers on a 2-core machine. The figures' numbers are the same
+# 261 trials: about 30-50 minutes with two workers on a 2-core machine. The figures' numbers are the same
 # on every run and machine (the simulated rig's latency is declared); their look depends on
 # matplotlib's version only.
 set -euo pipefail

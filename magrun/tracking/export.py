@@ -15,6 +15,7 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
+from typing import get_args
 
 import numpy as np
 import torch
@@ -124,8 +125,8 @@ def model_net(model: KeypointUNet, backend: Backend = "onnx") -> UNetNet:
     fused = fuse_batch_norm(model)
     if backend == "torch":
         return UNetNet(torch_net(fused), model.stride, "torch")
-    if backend != "onnx":
-        raise ValueError(f"unknown backend {backend!r}; one of onnx, torch")
+    if backend not in get_args(Backend):
+        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
     run, _ = onnx_net(onnx_bytes(fused))
     return UNetNet(run, model.stride, "onnx")
 

@@ -36,9 +36,11 @@ from magrun.tracking.weights import WeightsFile
 F32 = NDArray[np.float32]
 HeatmapNet = Callable[[F32], F32]
 Backend = Literal["onnx", "torch"]
-BACKENDS: tuple[Backend, ...] = ("onnx", "torch")
 #: the ONNX graph's metadata key holding the digest of the weights it was exported from
 DIGEST_KEY = "magrun_weights_sha256"
+#: the largest graph file read (the shipped one is 0.5 MB): a bound on what a hostile file
+#: can make magrun load
+MAX_GRAPH_BYTES = 256 * 1024 * 1024
 #: what to install for torch (training, exporting, the torch backend)
 TRAIN_EXTRA = "pip install -c constraints.txt -e '.[train]'"
 
@@ -116,6 +118,8 @@ def graph_net(weights: WeightsFile) -> UNetNet:
     path = weights.graph_path
     if not path.is_file():
         raise MissingGraph(f"{weights.path}: it has no ONNX graph beside it ({path.name})")
+    if path.stat().st_size > MAX_GRAPH_BYTES:
+        raise ValueError(f"{path}: {path.stat().st_size:,} bytes, more than the graph limit")
     try:
         run, meta = onnx_net(path)
     except ValueError as exc:
