@@ -40,10 +40,6 @@ class BuildReport:
     compiler: bool = True  # a C compiler was there (and MAGRUN_COMPILE is not 0)
     warnings: list[str] = field(default_factory=list)  # compile failures, one line each
 
-    @property
-    def total(self) -> int:
-        return sum(self.variants.values())
-
 
 def variants(protocol: Protocol, quick: bool = False) -> list[Trial]:
     """One trial per distinct controller configuration of ``protocol`` (method, tuning and

@@ -32,8 +32,8 @@ from magrun.tracking.inference import (
     onnx_net,
     to_array,
 )
-from magrun.tracking.unet import KeypointUNet, load_weights
-from magrun.tracking.weights import WeightsFile
+from magrun.tracking.unet import KeypointUNet, model_of
+from magrun.tracking.weights import WeightsFile, read_weights
 
 #: the largest difference allowed between the graph's heat maps and torch's (peaks are 1)
 AGREEMENT = 1e-4
@@ -122,21 +122,20 @@ def disagreement(graph: HeatmapNet, model: nn.Module) -> float:
 def model_net(model: KeypointUNet, backend: Backend = "onnx") -> UNetNet:
     """A torch ``model`` as a runnable network: fused, run by torch or (``"onnx"``) by its
     graph exported in memory (unstamped: it is never written)."""
+    if backend not in get_args(Backend):
+        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
     fused = fuse_batch_norm(model)
     if backend == "torch":
         return UNetNet(torch_net(fused), model.stride, "torch")
-    if backend not in get_args(Backend):
-        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
     run, _ = onnx_net(onnx_bytes(fused))
     return UNetNet(run, model.stride, "onnx")
 
 
 def weights_net(weights: WeightsFile, backend: Backend = "onnx") -> UNetNet:
     """The network of ``weights`` built in torch: torch itself, or its ONNX graph exported
-    in memory (:func:`magrun.tracking.inference.weights_net` comes here when no graph of
-    theirs lies beside them)."""
-    model, _ = load_weights(weights.path)
-    return model_net(model, backend)
+    in memory (:func:`magrun.tracking.tracker.load_net` comes here when no graph of theirs
+    lies beside them)."""
+    return model_net(model_of(weights), backend)
 
 
 def export_graph(weights_path: str | Path, out: str | Path | None = None) -> tuple[Path, float]:
@@ -144,11 +143,8 @@ def export_graph(weights_path: str | Path, out: str | Path | None = None) -> tup
     ``.onnx``), after checking it against torch; returns the path and the largest
     difference of their heat maps. Raises ``ValueError`` where they differ by more than
     :data:`AGREEMENT` (nothing is written)."""
-    from magrun.tracking.weights import read_weights
-
     weights = read_weights(weights_path)
-    model, _ = load_weights(weights_path)
-    fused = fuse_batch_norm(model)
+    fused = fuse_batch_norm(model_of(weights))
     graph = onnx_bytes(fused, weights.digest())
     run, _ = onnx_net(graph)
     worst = disagreement(run, fused)

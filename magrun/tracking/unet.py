@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from torch import nn
 
 from magrun.tracking.heatmaps import MEAN, SCALE
-from magrun.tracking.weights import read_weights
+from magrun.tracking.weights import WeightsFile, read_weights
 
 
 def _block(c_in: int, c_out: int) -> nn.Sequential:
@@ -98,6 +98,12 @@ def load_weights(path: str | Path) -> tuple[KeypointUNet, dict[str, Any]]:
     Raises ``ValueError`` naming what is wrong (:func:`magrun.tracking.weights.read_weights`),
     or which array does not fit a UNet of the file's widths."""
     weights = read_weights(path)
+    return model_of(weights), weights.meta
+
+
+def model_of(weights: WeightsFile) -> KeypointUNet:
+    """The model (eval mode) of a weights file already read; ``ValueError`` naming an array
+    that does not fit a UNet of its widths."""
     model = KeypointUNet(weights.widths)
     want = model.state_dict()
     state = {}
@@ -109,4 +115,4 @@ def load_weights(path: str | Path) -> tuple[KeypointUNet, dict[str, Any]]:
     if missing:
         raise ValueError(f"arrays missing: {', '.join(missing[:5])}")
     model.load_state_dict(state)
-    return model.eval(), weights.meta
+    return model.eval()
