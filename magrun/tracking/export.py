@@ -15,7 +15,6 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
-from typing import get_args
 
 import numpy as np
 import torch
@@ -29,6 +28,7 @@ from magrun.tracking.inference import (
     Backend,
     HeatmapNet,
     UNetNet,
+    check_backend,
     onnx_net,
     to_array,
 )
@@ -122,8 +122,7 @@ def disagreement(graph: HeatmapNet, model: nn.Module) -> float:
 def model_net(model: KeypointUNet, backend: Backend = "onnx") -> UNetNet:
     """A torch ``model`` as a runnable network: fused, run by torch or (``"onnx"``) by its
     graph exported in memory (unstamped: it is never written)."""
-    if backend not in get_args(Backend):
-        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
+    check_backend(backend)
     fused = fuse_batch_norm(model)
     if backend == "torch":
         return UNetNet(torch_net(fused), model.stride, "torch")

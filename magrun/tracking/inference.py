@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +43,13 @@ DIGEST_KEY = "magrun_weights_sha256"
 MAX_GRAPH_BYTES = 256 * 1024 * 1024
 #: what to install for torch (training, exporting, the torch backend)
 TRAIN_EXTRA = "pip install -c constraints.txt -e '.[train]'"
+
+
+def check_backend(backend: str) -> None:
+    """``ValueError`` for a backend that is not one of :data:`Backend`'s."""
+    if backend not in get_args(Backend):
+        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
+
 
 _threads: int | None = None
 
@@ -118,8 +125,9 @@ def graph_net(weights: WeightsFile) -> UNetNet:
     path = weights.graph_path
     if not path.is_file():
         raise MissingGraph(f"{weights.path}: it has no ONNX graph beside it ({path.name})")
-    if path.stat().st_size > MAX_GRAPH_BYTES:
-        raise ValueError(f"{path}: {path.stat().st_size:,} bytes, more than the graph limit")
+    size = path.stat().st_size
+    if size > MAX_GRAPH_BYTES:
+        raise ValueError(f"{path}: {size:,} bytes, more than the graph limit")
     try:
         run, meta = onnx_net(path)
     except ValueError as exc:

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, get_args
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -40,6 +40,7 @@ from magrun.tracking.inference import (
     Backend,
     MissingGraph,
     UNetNet,
+    check_backend,
     graph_net,
     to_array,
 )
@@ -66,8 +67,7 @@ def load_net(weights: WeightsFile, backend: Backend = "onnx") -> UNetNet:
 
     Raises :class:`~magrun.tracking.inference.MissingGraph` saying how to export the graph
     where it is missing and torch is not installed."""
-    if backend not in get_args(Backend):
-        raise ValueError(f"unknown backend {backend!r}; one of {', '.join(get_args(Backend))}")
+    check_backend(backend)
     problem: MissingGraph | None = None
     if backend == "onnx":
         try:
