@@ -16,9 +16,9 @@ from __future__ import annotations
 import signal
 import threading
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from types import FrameType
-from typing import Any
+from typing import Any, NoReturn
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -43,12 +43,51 @@ def clear() -> None:
     _requested = None
 
 
-def exit_interrupted() -> None:
-    """End the process as a Ctrl-C outside a run does: one line on stderr, exit status 130."""
+def exit_interrupted(signum: int = signal.SIGINT) -> NoReturn:
+    """End the process as a Ctrl-C outside a run does: one line on stderr, exit status
+    128 + ``signum`` (130 for SIGINT).
+
+    Call it after the ``except KeyboardInterrupt`` block, not inside it, so that the frames the
+    exception held are freed (and any file they had open closed) first. The exit runs
+    Python's exit functions (``atexit``: worker pools, logging) and flushes stdout and stderr,
+    then leaves with ``os._exit``: CPython 3.11 takes a KeyboardInterrupt that escaped code
+    run by ``exec`` of a string (dataclasses build their methods that way, while modules
+    import) for an unhandled one even when it was caught, and its normal exit would then kill
+    the process with SIGINT instead of returning 130.
+    """
+    import atexit
+    import gc
+    import os
     import sys
 
     print("\ninterrupted", file=sys.stderr)
-    sys.exit(exit_status(signal.SIGINT))
+    gc.collect()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with suppress(OSError, ValueError):  # a closed pipe: nothing left to say
+            stream.flush()
+    os._exit(exit_status(signum))
+
+
+@contextmanager
+def remembering_ctrl_c() -> Iterator[None]:
+    """SIGINT raises KeyboardInterrupt as usual while the block runs, and is remembered
+    (:func:`requested`) too: a KeyboardInterrupt raised inside a weakref callback or a
+    ``__del__`` (the import system has both) is printed as "Exception ignored" and lost,
+    and the caller should still stop (main thread only; elsewhere this installs nothing)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: FrameType | None) -> None:
+        request(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def exit_status(signum: int) -> int:

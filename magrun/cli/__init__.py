@@ -37,6 +37,7 @@ naming the file (and line where there is one); it never prints a traceback.
 
 from __future__ import annotations
 
+import signal
 import sys
 
 import click
@@ -74,13 +75,20 @@ def main() -> None:
     """The command line: click's own handling of its errors, with a Ctrl-C at any moment
     (before a run's stop handler is set up, or after) ending it with exit status 130 and one
     line (click alone prints "Aborted!" and exits 1)."""
-    from magrun.interrupt import exit_interrupted
+    from magrun.interrupt import exit_interrupted, requested
 
+    interrupted = False
     try:
         code = cli.main(prog_name="magrun", standalone_mode=False)
     except (KeyboardInterrupt, click.exceptions.Abort):
-        exit_interrupted()
+        interrupted = True  # exit below, once the exception's frames are freed
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
+    except Exception:
+        if requested() is None:
+            raise
+        interrupted = True  # a stop signal that an extension module's import turned into this
+    if interrupted:
+        exit_interrupted(requested() or signal.SIGINT)
     sys.exit(code if isinstance(code, int) else 0)

@@ -285,8 +285,7 @@ def _run(
         raise InputError(str(exc)) from exc
     progress = _RunProgress(protocol.name, n)
     t0 = time.perf_counter()
-    interrupt.clear()
-    try:
+    try:  # a Ctrl-C already remembered (magrun.console) stops the run before its first tick
         with interrupt.handling():
             manifest = run_protocol(
                 protocol, out, quick=quick, seed=seed, jobs=jobs, rig=the_rig,
