@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid
@@ -13,6 +14,12 @@ from magrun.field.lut import LookupTableFieldModel
 from magrun.field.reference import ReferenceMaps
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.robot import RobotParams, load_robot
+
+# The fuzz tests draw the same examples on every run (a run passes or fails by the code
+# alone, on any machine); MAGRUN_FUZZ_EXPLORE=1 draws new ones (docs/development.md).
+settings.register_profile("repeatable", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile("explore" if os.environ.get("MAGRUN_FUZZ_EXPLORE") == "1" else "repeatable")
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -80,6 +80,15 @@ def test_bad_files_name_the_file_and_line(tmp_path) -> None:
     )
     big = "".join(f"{x} {y} 1 1\n" for x in (-50, 0, 50) for y in (-50, 0, 50))
     assert "state the length unit" in bad(tmp_path, "% x y Bx By\n" + big)  # mm read as m
+    # a coordinate near the float limit: refused before its span or rounding overflows
+    far = "% x y z Bx By Bz\n0.0 1.797693134862316e+296 0.0 0.0 0.0 0.0\n"
+    assert "y reaches 1.79769e+296 m from the origin" in bad(tmp_path, far)
+    huge_field = HEADER + "".join(f"{x} {y} 1e300 0\n" for x in (0, 1, 2) for y in (0, 1, 2))
+    assert "too large for a coil: state the field unit" in bad(tmp_path, huge_field)
+    path = tmp_path / "small_current.txt"
+    path.write_text(HEADER + GRID)
+    with pytest.raises(ComsolFormatError, match="T per ampere"):  # finite, over a tiny current
+        read_comsol_map(path, current_a=1e-306)
 
 
 def test_missing_file_and_bad_current(tmp_path) -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from magrun.field.comsol import ComsolFormatError, read_comsol_map
@@ -51,6 +51,7 @@ annotation_files = st.one_of(
 
 @FUZZ
 @given(data=comsol_files)
+@example(data=b"% x y z Bx By Bz\n0.0 1.797693134862316e+296 0.0 0.0 0.0 0.0\n")  # overflowed
 def test_comsol_exports_of_anything(tmp_path: Path, data: bytes) -> None:
     path = tmp_path / "map.txt"
     path.write_bytes(data)

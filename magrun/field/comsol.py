@@ -63,6 +63,8 @@ _UNIT_TOKEN = re.compile(r"^[\(\[]\s*([^\)\]]*?)\s*[\)\]]$")
 _FIELD_NAME = re.compile(r"(?:^|[.:])b_?([xyz])$", re.IGNORECASE)
 _LENGTH_LINE = re.compile(r"^length unit\s*:\s*(\S+)", re.IGNORECASE)
 MAX_SPAN_M = 2.0  # a coil-rig workspace map spanning more than this is a unit mistake
+#: a field per ampere above this (T/A) is a unit mistake too (coils give mT per ampere)
+MAX_FIELD_T_PER_A = 1e3
 
 
 class ComsolFormatError(ValueError):
@@ -163,12 +165,19 @@ def read_comsol_map(path: str | Path, current_a: float = 1.0) -> FieldMap:
                 f"{where}: points lie on more than one plane (z from {z.min():g} to {z.max():g} m);"
                 " export a single plane"
             )
-    B = (
-        np.column_stack(
-            [data[:, index["bx"]] * field_scale["bx"], data[:, index["by"]] * field_scale["by"]]
+    with np.errstate(over="ignore"):  # a huge value over a small current: checked below
+        B = (
+            np.column_stack(
+                [data[:, index["bx"]] * field_scale["bx"], data[:, index["by"]] * field_scale["by"]]
+            )
+            / current_a
         )
-        / current_a
-    )
+    strongest = float(np.max(np.abs(B))) if B.size else 0.0
+    if not strongest <= MAX_FIELD_T_PER_A:
+        raise ComsolFormatError(
+            f"{where}: a field of {strongest:g} T per ampere at {current_a:g} A, too large for a "
+            "coil: state the field unit (e.g. 'mf.Bx (mT)') and the current the map was computed at"
+        )
     return _to_grid(x, y, B, path)
 
 
@@ -218,6 +227,13 @@ def _scale(unit: str, table: Mapping[str, float], where: str, column: str) -> fl
 
 def _to_grid(x: NDArray[Any], y: NDArray[Any], B: NDArray[Any], path: Path) -> FieldMap:
     for name, v in (("x", x), ("y", y)):
+        farthest = float(np.max(np.abs(v)))
+        if farthest > MAX_SPAN_M:  # checked first: the span of such values can overflow
+            raise ComsolFormatError(
+                f"{path}:0: {name} reaches {farthest:g} m from the origin, too far for a "
+                "workspace map: state the length unit (e.g. '% Length unit: mm' or a '(mm)' "
+                "after the column name)"
+            )
         if np.ptp(v) > MAX_SPAN_M:
             raise ComsolFormatError(
                 f"{path}:0: {name} spans {np.ptp(v):g} m, too large for a workspace map: "
