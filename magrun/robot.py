@@ -262,9 +262,16 @@ def relaxation(tau: float, h: float) -> tuple[float, float]:
     return decay, tau * (1.0 - decay)
 
 
-def _relax(u0: Any, u_ss: Any, tau: float, h: float) -> tuple[Any, Any]:
-    """Exact solution of u̇ = (u_ss − u)/τ over h: (u(h), ∫₀ʰ u dt)."""
-    decay, integral = relaxation(tau, h)
+def _relax(u0: Any, u_ss: Any, tau: float, h: Any) -> tuple[Any, Any]:
+    """Exact solution of u̇ = (u_ss − u)/τ over h: (u(h), ∫₀ʰ u dt). ``h`` a float, or an
+    array with each element's own length (the replay's rollouts from many starts at once)."""
+    decay: Any
+    integral: Any
+    if isinstance(h, np.ndarray):
+        decay = np.exp(-h / tau)
+        integral = tau * (1.0 - decay)
+    else:
+        decay, integral = relaxation(tau, h)
     return u_ss + (u0 - u_ss) * decay, u_ss * h + (u0 - u_ss) * integral
 
 
@@ -311,10 +318,11 @@ def exponential_substep(
     B: Any,
     G: Any,
     params: RobotParams,
-    h: float,
+    h: Any,
     ops: SimpleNamespace = NUMPY_OPS,
 ) -> tuple[Any, ...]:
-    """One sub-step of length ``h`` (s) with the field (B, G) held: the scheme of the module doc.
+    """One sub-step of length ``h`` (s; a float, or with NumPy an array of each element's own)
+    with the field (B, G) held: the scheme of the module doc.
 
     Exponential midpoint rule: a half step under the start wrench predicts the mid-step
     orientation; the full step then uses the wrench at that orientation. The damping is exact

@@ -336,13 +336,23 @@ def rollout_driven(
     state = start_states(seg)
     positions = np.empty((seg.horizon, len(starts), 2))
     headings = np.empty((seg.horizon, len(starts)))
+    sizes = np.array([len(d) for d in driven])
     for j in range(seg.horizon):
         ks = starts + j
-        m = min(len(driven[k]) for k in ks)
-        h = np.array([seg.length[k] / len(driven[k]) for k in ks])
-        for lo in range(0, m, part):
+        m = int(sizes[ks].min())
+        h = seg.length[ks] / sizes[ks]
+        bounds = np.arange(0, m, part)
+        means = None
+        if m > 0 and np.all(sizes[ks] == m):  # every tick m sub-steps (a declared latency)
+            stacked = np.stack([driven[k] for k in ks])  # (n, m, C): all parts' means at once
+            counts = np.diff(np.append(bounds, m))[None, :, None]
+            means = np.add.reduceat(stacked, bounds, axis=1) / counts
+        for c, lo in enumerate(range(0, m, part)):
             hi = min(lo + part, m)
-            held = np.stack([driven[k][lo:hi].mean(axis=0) for k in ks])
+            if means is not None:
+                held = means[:, c]
+            else:  # ticks of different lengths (a measured latency): the first m sub-steps
+                held = np.stack([driven[k][lo:hi].mean(axis=0) for k in ks])
             if gains is not None:
                 held = held * gains
             B, G = fld(np.column_stack(state[:2]), held)

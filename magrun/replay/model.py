@@ -98,9 +98,7 @@ def field_function(model: str, system: System) -> Any:
         grid = system.plant_maps
 
         def gridded(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
-            rows = np.stack(
-                [I @ grid.unit(x, y) for (x, y), I in zip(positions, currents, strict=True)]
-            )
+            rows = np.einsum("nc,nck->nk", currents, grid.units(positions))
             return rows[:, :2].T, rows[:, 2:].reshape(-1, 2, 2).transpose(1, 2, 0)
 
         return gridded
@@ -241,19 +239,11 @@ def prediction_errors(
 def substep_each(
     state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray
 ) -> tuple[Any, ...]:
-    """One sub-step of length ``h`` (an array: each start's own) for every start at once."""
+    """One sub-step of length ``h`` (an array: each start's own) for every start at once; a
+    start with ``h`` ≤ 0 keeps its state."""
     if np.all(h == h.flat[0]):
         h0 = float(h.flat[0])
         return state if h0 <= 0 else tuple(exponential_substep(state, B, G, robot, h0))
-    # different lengths (measured latency): group the starts by length
-    out = [np.array(s, dtype=np.float64, copy=True) for s in state]
-    for value in np.unique(h):
-        if value <= 0:
-            continue
-        sel = h == value
-        part = tuple(s[sel] for s in state)
-        Bs = tuple(b[sel] for b in B)
-        Gs = tuple(tuple(g[sel] for g in row) for row in G)
-        for i, s in enumerate(exponential_substep(part, Bs, Gs, robot, float(value))):
-            out[i][sel] = s
-    return tuple(out)
+    # different lengths (ticks of measured length or latency): each start its own constants
+    moved = exponential_substep(state, B, G, robot, np.maximum(h, 0.0))
+    return tuple(np.where(h > 0, new, old) for new, old in zip(moved, state, strict=True))

@@ -1,0 +1,104 @@
+"""The replay's open-loop rollouts from many starts at once (magrun replay --model, magrun
+identify) against the same computation one start at a time."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from magrun.field.grid import ChannelGrid
+from magrun.replay.identify import rollout_driven
+from magrun.replay.model import Segments, start_states, substep_each
+from magrun.robot import exponential_substep, load_robot
+
+ROBOT = load_robot("magnet")
+
+
+def _field(positions: np.ndarray, currents: np.ndarray) -> tuple[tuple, tuple]:
+    """A smooth field of the position and the currents, (B, G) as the rollouts take them:
+    B[k] and G[k][l] arrays over the starts (T, T/m)."""
+    x, y = positions[:, 0], positions[:, 1]
+    s = currents.sum(axis=1) * 1e-3
+    d = (currents[:, 0] - currents[:, -1]) * 1e-3
+    B = (s * (1 + 20 * x), d * (1 - 30 * y))
+    G = ((20 * s, 0.2 * d + 5 * s * y), (0.2 * d + 5 * s * y, -30 * d))
+    return B, G
+
+
+@pytest.fixture(scope="module")
+def grid() -> ChannelGrid:
+    return ChannelGrid.load()
+
+
+def test_units_at_many_positions_are_unit_at_each(grid: ChannelGrid) -> None:
+    """Inside the grid, on its edges and beyond them (held at the edge cell)."""
+    rng = np.random.default_rng(1)
+    points = np.vstack([rng.uniform(-0.07, 0.07, (300, 2)), [[grid.x0, grid.y0], [0.0, 0.0]]])
+    many = grid.units(points)
+    one_by_one = np.stack([grid.unit(x, y) for x, y in points])
+    scale = np.max(np.abs(one_by_one))
+    np.testing.assert_allclose(many, one_by_one, rtol=0, atol=1e-12 * scale)
+
+
+def test_a_substep_of_each_starts_own_length_is_each_starts_substep() -> None:
+    """Starts of different lengths in one call: each as its own call with its own float
+    length (to rounding), and a start of length 0 keeps its state exactly."""
+    rng = np.random.default_rng(2)
+    n = 7
+    state = tuple(rng.normal(0, s, n) for s in (1e-3, 1e-3, 1.0, 1e-3, 1e-3, 0.5))
+    positions = np.column_stack(state[:2])
+    B, G = _field(positions, rng.uniform(-20, 20, (n, 8)))
+    h = np.array([1e-3, 2e-3, 0.5e-3, 1e-3, 0.0, 3e-3, 1.5e-3])
+    together = substep_each(state, B, G, ROBOT, h)
+    for i in range(n):
+        mine = tuple(s[i : i + 1] for s in state)
+        Bi = tuple(b[i : i + 1] for b in B)
+        Gi = tuple(tuple(g[i : i + 1] for g in row) for row in G)
+        alone = mine if h[i] == 0 else exponential_substep(mine, Bi, Gi, ROBOT, float(h[i]))
+        got = np.array([s[i] for s in together])
+        want = np.array([float(s[0]) for s in alone])
+        if h[i] == 0:
+            assert np.array_equal(got, want)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
+def _segments(n_ticks: int, horizon: int) -> Segments:
+    rng = np.random.default_rng(3)
+    t = np.arange(n_ticks) / 25.5
+    actual = np.column_stack([2e-3 * np.sin(t), 1e-3 * np.cos(2 * t), 0.3 * t])
+    length = np.full(n_ticks, 1 / 25.5) + rng.normal(0, 2e-4, n_ticks)  # measured ticks
+    return Segments(
+        actual=actual, currents=rng.uniform(-20, 20, (n_ticks, 8)),
+        lag=np.full(n_ticks, 5e-3), length=length, dt=1 / 25.5,
+        starts=np.arange(1, n_ticks - horizon), horizon=horizon,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("uneven", [False, True])
+def test_rollouts_from_every_start_at_once_are_each_starts_rollout(uneven: bool) -> None:
+    """rollout_driven over all starts against the same rollout run from one start at a time
+    (the field read every 5 sub-steps at the mean current of those sub-steps, each tick's
+    own sub-step length): equal to rounding, with every tick the same number of sub-steps
+    and with ticks of different numbers (a measured latency)."""
+    seg = _segments(40, 3)
+    rng = np.random.default_rng(4)
+    sizes = rng.integers(36, 40, 40) if uneven else np.full(40, 38)
+    driven = [rng.uniform(-20, 20, (m, 8)) for m in sizes]
+    gains = np.linspace(0.95, 1.05, 8)
+    positions, headings = rollout_driven(seg, driven, ROBOT, _field, gains)
+    for i, start in enumerate(seg.starts):
+        state = tuple(s[i : i + 1] for s in start_states(seg))
+        for j in range(seg.horizon):
+            ks = seg.starts + j
+            k = start + j
+            m = int(sizes[ks].min())  # all starts advance together by the shortest tick
+            h = seg.length[k] / sizes[k]
+            for lo in range(0, m, 5):
+                held = driven[k][lo : min(lo + 5, m)].mean(axis=0)[None] * gains
+                B, G = _field(np.column_stack(state[:2]), held)
+                for _ in range(min(lo + 5, m) - lo):
+                    state = tuple(exponential_substep(state, B, G, ROBOT, float(h)))
+            np.testing.assert_allclose(
+                positions[j, i], [state[0][0], state[1][0]], rtol=0, atol=1e-12
+            )
+            np.testing.assert_allclose(headings[j, i], state[2][0], rtol=0, atol=1e-9)
