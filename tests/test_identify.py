@@ -107,10 +107,11 @@ def test_a_calibrated_controller_predicts_its_rig_better(
     """The whole route: identify the robot and the coil gains on one rig, then run the same
     rig (``simulation.plant_seed``: the fixture's plant) with the identified robot and
     ``controller.coil_gains``, against the same rig run with the nominal models (the plant is
-    drawn far from them, gains σ = 5 %). The NMPC on lookup tables (Baseline 5) is used: in
-    simulation its model is the plant's field, so the coils' gains are what it gets wrong.
-    Its one-tick heading prediction error falls by more than a third (0.42° to 0.23° seen)
-    and its tracking error does not grow (0.044 to 0.038 mm seen)."""
+    drawn far from them, gains σ = 5 %), the first 15 s of the S each. The NMPC on lookup
+    tables (Baseline 5) is used: in simulation its model is the plant's field, so the coils'
+    gains are what it gets wrong. Its one-tick heading prediction error falls by more than a
+    third (0.32° to 0.12° seen) and its tracking error does not grow (0.042 to 0.038 mm
+    seen)."""
     from magrun.calibration import load_coil_gains
     from magrun.runner import run_protocol
 
@@ -127,7 +128,9 @@ def test_a_calibrated_controller_predicts_its_rig_better(
     np.testing.assert_allclose(fitted, plant / math.exp(np.mean(np.log(plant))), rtol=0.015)
 
     seed = load_protocol(TINY, PERTURBED).expand()[0].seed
-    same_rig = (*PERTURBED, "methods=[baseline5]", f"simulation.plant_seed={seed}")
+    same_rig = (
+        *PERTURBED, "methods=[baseline5]", f"simulation.plant_seed={seed}", "duration_s=15"
+    )  # fmt: skip
     calibrated = (
         *same_rig, f"robots_file={robots}", "robot=rig", f"controller.coil_gains={gains}"
     )  # fmt: skip
