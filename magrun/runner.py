@@ -32,6 +32,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import datetime
 import json
+import logging
 import math
 import multiprocessing
 import os
@@ -440,15 +441,54 @@ def _signal_workers(pool: cf.ProcessPoolExecutor, signum: int | None) -> None:
             os.kill(proc.pid, signum or signal.SIGTERM)
 
 
+def _run_on_ray_node(trial: Trial, rig: RigSpec, view: str = "") -> dict[str, Any]:
+    """One trial as a Ray task: recorded into the node's own temporary folder, then returned
+    whole: its manifest entry (with the node's id), and every file it wrote, by its path
+    under the output folder. The driver writes them (:func:`_write_back`), so no node needs
+    the driver's output folder."""
+    import tempfile
+
+    import ray
+
+    with tempfile.TemporaryDirectory(prefix="magrun-ray-") as tmp:
+        entry = _run_in_worker(trial, tmp, rig, None, view)
+        files = {
+            p.relative_to(tmp).as_posix(): p.read_bytes()
+            for p in sorted(Path(tmp).rglob("*"))
+            if p.is_file()
+        }
+    entry["ray_node"] = ray.get_runtime_context().get_node_id()
+    return {"entry": entry, "files": files}
+
+
+def _write_back(out: Path, files: dict[str, bytes]) -> None:
+    """A Ray task's files under the driver's output folder ``out``, each written whole to a
+    temporary name and renamed (a crash of the driver leaves no half file). Paths are checked:
+    relative, inside ``out``."""
+    for rel, data in files.items():
+        parts = Path(rel).parts
+        if Path(rel).is_absolute() or not parts or ".." in parts:
+            raise RunError(f"a Ray task returned a file outside the output folder: {rel!r}")
+        target = out / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        partial = target.with_name(target.name + ".part")
+        partial.write_bytes(data)
+        os.replace(partial, target)
+
+
 def ray_executor(
     address: str | None = None, num_cpus: int | None = None, view: str = ""
 ) -> Executor:
     """Run trials as Ray tasks (``pip install magrun[ray]``), one CPU each; ``view`` as for
     :func:`local_executor` (each node must reach it).
 
-    ``address`` is a running cluster's (``ray://host:10001`` or ``auto``); ``None`` starts a
-    local Ray instance with ``num_cpus`` CPUs. The output folder must be shared storage that
-    every node writes to.
+    ``address`` is a running cluster's (``ray://host:10001``, ``HOST:6379`` or ``auto``);
+    ``None`` starts a local Ray instance with ``num_cpus`` CPUs. Each trial records on its
+    node, into a temporary folder, and its files come back to this process with its result
+    (:func:`_run_on_ray_node`), which writes them under the output folder: the nodes need
+    magrun installed, not the driver's disk. The manifest entry names the node
+    (``ray_node``). A stop signal (:mod:`magrun.interrupt`) cancels what has not come back;
+    those trials stay pending.
     """
     try:
         import ray
@@ -461,22 +501,35 @@ def ray_executor(
         started = not ray.is_initialized()
         if started:
             ray.init(
-                address=address, num_cpus=num_cpus, include_dashboard=False, log_to_driver=False
-            )
+                address=address, num_cpus=num_cpus, include_dashboard=False,
+                log_to_driver=False, logging_level=logging.WARNING,
+            )  # fmt: skip
         try:
             one_thread = {k: os.environ.get(k, "1") for k in THREAD_ENV}
-            task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_in_worker)
-            refs = {task.remote(t, str(out.resolve()), rig, None, view): t for t in trials}
+            task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_on_ray_node)
+            refs = {task.remote(t, rig, view): t for t in trials}
             pending = list(refs)
             while pending:
-                ready, pending = ray.wait(pending, num_returns=1)
+                if interrupt.requested() is not None:
+                    # a stop: queued trials never start, running ones are cancelled on
+                    # their nodes (nothing of them is written here); all stay pending for
+                    # --resume
+                    for ref in pending:
+                        ray.cancel(ref)
+                    return
+                ready, pending = ray.wait(pending, num_returns=1, timeout=0.2)
+                if not ready:
+                    continue
                 ref = ready[0]
 
                 def get(ref: Any = ref) -> dict[str, Any]:
-                    entry: dict[str, Any] = ray.get(ref)
+                    result: dict[str, Any] = ray.get(ref)
+                    _write_back(out, result["files"])
+                    entry: dict[str, Any] = result["entry"]
                     return entry
 
                 yield _result_or_failure(get, refs[ref])
+                del refs[ref]  # its files are written: Ray may free them
         finally:
             if started:
                 ray.shutdown()

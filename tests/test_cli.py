@@ -390,6 +390,27 @@ def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
     assert len(list((tmp_path / "tiny").rglob("*.mcap"))) == 4
 
 
+def test_bench_cluster_json(runner: CliRunner) -> None:
+    """One local one-node Ray cluster: the figures add up; bad sizes exit 2 before any."""
+    pytest.importorskip("ray")
+    tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
+    for nodes in ("0", "two", ""):
+        bad = runner.invoke(cli, ["bench", "cluster", str(tiny), "--nodes", nodes])
+        assert bad.exit_code == 2, bad.output
+        assert "--nodes" in bad.output
+    result = runner.invoke(cli, ["bench", "cluster", str(tiny), "--nodes", "1", "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output.strip().splitlines()[-1])
+    row = doc["clusters"]["1"]
+    assert doc["trials"] == 4
+    assert row["failed"] == 0
+    assert row["nodes_used"] == 1
+    assert row["speedup"] == 1.0
+    assert 0 < row["run_s"] < row["wall_s"]
+    assert row["trials_per_min"] == pytest.approx(4 / row["wall_s"] * 60)
+    assert row["recordings_mb"] > 0
+
+
 def test_bench_campaign_feedback_override_reaches_the_recordings(
     runner: CliRunner, tmp_path: Path
 ) -> None:

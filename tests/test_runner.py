@@ -182,15 +182,72 @@ def test_same_seed_gives_the_same_messages_whatever_the_job_count(
         assert a == b
 
 
-def test_ray_executor_runs_the_same_trials_on_a_local_ray_instance(
+def test_ray_trials_on_two_nodes_come_back_to_the_drivers_folder(
     tiny_run: Any, tmp_path: Path
 ) -> None:
+    """A local two-node Ray cluster (a head and a second raylet, one CPU each): every trial
+    records on its node into the node's own temporary folder and comes back with its result;
+    the driver writes it. Both nodes ran trials, and every recording at the driver is the
+    in-process run's, message for message, with its summary index (the topic counts). A stop
+    once the first trial is back leaves the other three pending, none of them written."""
     pytest.importorskip("ray")
-    out1, manifest = tiny_run
-    ray_manifest = run_protocol(load_protocol(TINY), tmp_path, executor=ray_executor(num_cpus=2))
-    assert {e["status"] for e in ray_manifest["trials"]} == {"ok"}
-    e = manifest["trials"][-1]
-    assert read_mcap(out1 / "tiny" / e["mcap"])[1] == read_mcap(tmp_path / "tiny" / e["mcap"])[1]
+    import signal
+
+    import ray
+    from ray.cluster_utils import Cluster
+
+    from magrun import interrupt
+
+    store = 100 * 1024**2
+    cluster = Cluster(
+        initialize_head=True,
+        head_node_args={"num_cpus": 1, "object_store_memory": store, "include_dashboard": False},
+    )
+    try:
+        cluster.add_node(num_cpus=1, object_store_memory=store)
+        cluster.wait_for_nodes()
+        ray.init(address=cluster.address, log_to_driver=False)
+        manifest = run_protocol(load_protocol(TINY), tmp_path, executor=ray_executor())
+        # a stop once the first trial is back: the others are cancelled, none written
+        interrupt.clear()
+        try:
+            stopped = run_protocol(
+                load_protocol(TINY), tmp_path / "stopped", executor=ray_executor(),
+                on_trial=lambda entry: interrupt.request(signal.SIGINT),
+            )  # fmt: skip
+        finally:
+            interrupt.clear()
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    statuses = sorted(e["status"] for e in stopped["trials"])
+    assert statuses == ["ok", "pending", "pending", "pending"], statuses
+    assert stopped["interrupted"] == "SIGINT"
+    assert len(list((tmp_path / "stopped" / "tiny").rglob("*.mcap"))) == 1
+    entries = manifest["trials"]
+    assert {e["status"] for e in entries} == {"ok"}
+    assert len({e["ray_node"] for e in entries}) == 2
+    out1, local = tiny_run
+    assert [e["mcap"] for e in entries] == [e["mcap"] for e in local["trials"]]
+    for e in entries:
+        here = read_mcap(out1 / "tiny" / e["mcap"])
+        there = read_mcap(tmp_path / "tiny" / e["mcap"])
+        assert there[0] == here[0]
+        assert there[0]["/robot/pose/actual"] == e["ticks"]
+        assert there[1] == here[1]
+        assert (tmp_path / "tiny" / e["rrd"]).stat().st_size > 0
+    assert not list(tmp_path.rglob("*.part"))
+
+
+def test_a_ray_task_cannot_write_outside_the_output_folder(tmp_path: Path) -> None:
+    from magrun.runner import _write_back
+
+    for rel in ("../escape.mcap", "/abs/path.mcap", ""):
+        with pytest.raises(RunError, match="outside the output folder"):
+            _write_back(tmp_path / "out", {rel: b"x"})
+    assert not (tmp_path / "escape.mcap").exists()
+    _write_back(tmp_path / "out", {"p/a/trial-0.mcap": b"data"})
+    assert (tmp_path / "out" / "p" / "a" / "trial-0.mcap").read_bytes() == b"data"
 
 
 def test_analysis_reads_the_runner_recordings_to_the_same_errors(tiny_run: Any) -> None:

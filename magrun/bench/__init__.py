@@ -13,6 +13,7 @@ correctness, these functions measure.
 :mod:`~.sigkill`          recordings after SIGKILL of the recording process
 :mod:`~.campaign`         the protocols run with recordings, timed
 :mod:`~.rig`              the hardware path on the rig emulator; the watchdog
+:mod:`~.cluster`          a protocol's trials on local Ray clusters of 1, 2, … nodes
 ========================  ===========================================================
 
 They use magrun's public interfaces only: a trial is assembled by :mod:`magrun.trial` and a

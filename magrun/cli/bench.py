@@ -196,6 +196,39 @@ def bench_campaign(
     _emit(result, campaign.summary(result), as_json)
 
 
+@bench.command("cluster")
+@click.argument("protocol_file", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--nodes", default="1,2", show_default=True,
+              help="Cluster sizes to compare, comma-separated (local Ray clusters).")  # fmt: skip
+@click.option("--cpus-per-node", type=click.IntRange(min=1), default=1, show_default=True,
+              help="CPUs each node offers (one trial each).")  # fmt: skip
+@click.option("--full", is_flag=True, help="The protocol's full set of trials, not --quick.")
+@JSON_OPTION
+def bench_cluster(
+    protocol_file: Path, nodes: str, cpus_per_node: int, full: bool, as_json: bool
+) -> None:
+    """PROTOCOL_FILE's trials on local Ray clusters of each size, recordings written back to
+    the driver (needs the ray extra)."""
+    try:
+        sizes = [int(n) for n in nodes.split(",") if n.strip()]
+    except ValueError:
+        raise InputError(f"--nodes: comma-separated whole numbers, got {nodes!r}") from None
+    if not sizes or min(sizes) < 1 or max(sizes) > 16:
+        raise InputError(f"--nodes: sizes from 1 to 16, got {nodes!r}")
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        raise InputError("magrun bench cluster needs Ray: pip install 'magrun[ray]'") from None
+    from magrun.bench import cluster
+
+    load_protocols((protocol_file,))
+    result = cluster.bench_cluster(
+        str(protocol_file), sizes, cpus_per_node, quick=not full,
+        progress=None if as_json else say("cluster of"),
+    )  # fmt: skip
+    _emit(result, cluster.summary(result), as_json)
+
+
 @bench.command("tick")
 @click.option(
     "--protocol",
