@@ -11,6 +11,8 @@ from numpy.testing import assert_allclose
 from scipy.linalg import solve_discrete_are
 
 from magrun.control.estimation import (
+    FLIP_PATIENCE,
+    GATE_PATIENCE,
     HoldLastMeasurement,
     KalmanConfig,
     KalmanPoseFilter,
@@ -341,6 +343,50 @@ def test_the_outlier_gate_rejects_a_far_frame_and_follows_a_real_move() -> None:
         np.testing.assert_array_equal(gated.update(moved_to, pose), pose)
     assert gated.rejected == 3
     assert np.linalg.norm(gated.update(moved_to, pose)[:2] - pose[:2]) > 0.005
+
+
+def test_the_gate_takes_a_reversed_measurements_position_but_not_its_heading() -> None:
+    """A tracker that keeps reporting the robot end for end (heading + 180°, position 3 mm
+    off): the gate rejects three, then takes the fourth's position alone, as a filter fed
+    that position alone does, the heading left as predicted (counted as reversed); so on
+    for FLIP_PATIENCE of them, after which the next is taken whole. A heading 80° off is
+    not reversed, and without the gate nothing is left out."""
+    cfg = KalmanConfig(measurement_position=1e-3, outlier_gate=4.0)
+    pose = np.array([0.01, -0.005, 0.4])
+    flipped = pose + np.array([3e-3, 0.0, math.pi])
+    gated = KalmanPoseFilter(cfg)
+    gated.reset(pose)
+    alone = KalmanPoseFilter(cfg)  # the same filter, the position fused by hand
+    alone.reset(pose)
+    for n in range(1, FLIP_PATIENCE + 1):
+        for _ in range(GATE_PATIENCE):
+            np.testing.assert_array_equal(gated.update(flipped, pose), pose)
+            alone.update(None, pose)
+        est = gated.update(flipped, pose)
+        alone.update(None, pose)
+        alone.kf.update(flipped[:2].reshape(2, 1), R=alone.kf.R[:2, :2], H=alone.kf.H[:2])
+        np.testing.assert_allclose(est, alone.pose, rtol=0, atol=1e-15)
+        assert abs(est[2] - pose[2]) < math.radians(0.5)  # the heading barely moves
+        assert est[0] - pose[0] > 0.5e-3  # the position is fused
+        assert gated.reversed == n
+    for _ in range(GATE_PATIENCE):
+        gated.update(flipped, pose)
+    taken = gated.update(flipped, pose)
+    assert abs(taken[2] - pose[2]) > math.radians(45)  # FLIP_PATIENCE in a row: taken whole
+    assert gated.reversed == FLIP_PATIENCE
+    wide = replace(cfg, measurement_angle=1.0)  # so that the gate passes 80°
+    for heading, config in (
+        (math.radians(80), wide),
+        (math.radians(170), replace(cfg, outlier_gate=0)),
+    ):
+        kf, whole = KalmanPoseFilter(config), KalmanPoseFilter(config)
+        z = pose + np.array([0.0, 0.0, heading])
+        for f in (kf, whole):
+            f.reset(pose)
+        whole.update(None, pose)
+        whole.kf.update(np.array([[z[0]], [z[1]], [pose[2] + heading]]))  # all of it, by hand
+        np.testing.assert_allclose(kf.update(z, pose), whole.pose, rtol=0, atol=1e-15)
+        assert kf.reversed == 0
 
 
 @pytest.mark.parametrize("frame_ticks", [1, 9])
