@@ -476,6 +476,30 @@ def _write_back(out: Path, files: dict[str, bytes]) -> None:
         os.replace(partial, target)
 
 
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """A :class:`RunError` unless ``address`` (``HOST:PORT``, ``ray://HOST:PORT`` or
+    ``auto``) answers a TCP connection within ``timeout_s``: Ray's own connection to a
+    cluster that is not there waits for many minutes."""
+    import socket
+
+    if address == "auto":
+        return  # Ray finds the cluster this machine runs, or says at once there is none
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise RunError(
+            f"--ray-address {address!r}: give HOST:PORT (the head's GCS port, 6379 by "
+            "default), ray://HOST:PORT (Ray's client port, 10001) or auto"
+        )
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise RunError(
+            f"could not connect to the Ray cluster at {address}: {exc} (is `ray start "
+            "--head` running there, and the port open?)"
+        ) from exc
+
+
 def ray_executor(
     address: str | None = None, num_cpus: int | None = None, view: str = ""
 ) -> Executor:
@@ -494,16 +518,28 @@ def ray_executor(
         import ray
     except ImportError as exc:
         raise RunError("the Ray executor needs Ray: pip install 'magrun[ray]'") from exc
+    if address:
+        _check_reachable(address)  # before a run writes anything
 
     def run(
         trials: list[Trial], out: Path, rig: RigSpec, progress: ProgressFn | None
     ) -> Iterator[dict[str, Any]]:
         started = not ray.is_initialized()
         if started:
-            ray.init(
-                address=address, num_cpus=num_cpus, include_dashboard=False,
-                log_to_driver=False, logging_level=logging.WARNING,
-            )  # fmt: skip
+            try:
+                ray.init(
+                    # a running cluster has its own CPUs: Ray refuses num_cpus with an address
+                    address=address, num_cpus=None if address else num_cpus,
+                    include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING,
+                )  # fmt: skip
+            except Exception as exc:  # no cluster there, refused, another version, …
+                where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+                hint = (
+                    " (a cluster that `ray start --head` started asks for its token: set "
+                    "RAY_AUTH_MODE=token, with the head's ~/.ray/auth_token on this machine)"
+                    if address else ""
+                )  # fmt: skip
+                raise RunError(f"could not connect to {where}: {exc}{hint}") from exc
         try:
             one_thread = {k: os.environ.get(k, "1") for k in THREAD_ENV}
             task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_on_ray_node)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import socket
 import subprocess
 import sys
 import threading
@@ -206,13 +207,15 @@ def test_ray_trials_on_two_nodes_come_back_to_the_drivers_folder(
     try:
         cluster.add_node(num_cpus=1, object_store_memory=store)
         cluster.wait_for_nodes()
-        ray.init(address=cluster.address, log_to_driver=False)
-        manifest = run_protocol(load_protocol(TINY), tmp_path, executor=ray_executor())
+        # as `magrun run --executor ray --ray-address ADDR --jobs 2` makes it
+        executor = ray_executor(cluster.address, num_cpus=2)
+        manifest = run_protocol(load_protocol(TINY), tmp_path, executor=executor)
+        assert not ray.is_initialized()  # the executor connected, and let go
         # a stop once the first trial is back: the others are cancelled, none written
         interrupt.clear()
         try:
             stopped = run_protocol(
-                load_protocol(TINY), tmp_path / "stopped", executor=ray_executor(),
+                load_protocol(TINY), tmp_path / "stopped", executor=executor,
                 on_trial=lambda entry: interrupt.request(signal.SIGINT),
             )  # fmt: skip
         finally:
@@ -237,6 +240,30 @@ def test_ray_trials_on_two_nodes_come_back_to_the_drivers_folder(
         assert there[1] == here[1]
         assert (tmp_path / "tiny" / e["rrd"]).stat().st_size > 0
     assert not list(tmp_path.rglob("*.part"))
+
+
+def test_no_ray_cluster_at_the_address_is_a_clear_error(tmp_path: Path) -> None:
+    """Nothing at the address, or no port in it: exit 2 at once, the address named (Ray's own
+    connection attempt waits for many minutes)."""
+    pytest.importorskip("ray")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    result = CliRunner().invoke(
+        cli,
+        ["run", str(TINY), "--out", str(tmp_path), "--executor", "ray",
+         "--ray-address", f"127.0.0.1:{port}"],
+    )  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert f"could not connect to the Ray cluster at 127.0.0.1:{port}" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "tiny").exists()  # nothing written: the same command runs again
+    bad = CliRunner().invoke(
+        cli, ["run", str(TINY), "--out", str(tmp_path / "b"), "--executor", "ray",
+              "--ray-address", "head-without-port"],
+    )  # fmt: skip
+    assert bad.exit_code == 2, bad.output
+    assert "give HOST:PORT" in bad.output
 
 
 def test_a_ray_task_cannot_write_outside_the_output_folder(tmp_path: Path) -> None:
