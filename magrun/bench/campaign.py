@@ -6,7 +6,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from magrun.bench.machine import machine
+from magrun.bench.machine import folder_bytes, machine
 
 
 def bench_campaign(
@@ -74,7 +74,7 @@ def bench_campaign(
     for protocol, (manifest, finished) in zip(protocols, done, strict=True):
         trials = manifest["trials"]
         folder = Path(out) / protocol.name
-        size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+        size = folder_bytes(folder)
         result["protocols"][protocol.name] = {
             "trials": len(trials),
             "wall_s": finished,

@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from magrun.bench.machine import machine
+from magrun.bench.machine import folder_bytes, machine
 
 
 def bench_cluster(
@@ -78,7 +78,7 @@ def bench_cluster(
                 cluster.shutdown()
             trials = manifest["trials"]
             folder = Path(out) / protocol.name
-            size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+            size = folder_bytes(folder)
         result["clusters"][str(n)] = {
             "nodes": n,
             "wall_s": done - t0,

@@ -1,4 +1,5 @@
-"""What every benchmark shares: the machine's description, one pinned core, percentiles."""
+"""What every benchmark shares: the machine's description, one pinned core, percentiles, a
+folder's size."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import os
 import platform
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -48,3 +50,8 @@ def one_core() -> Iterator[int | None]:
 def ms(values: np.ndarray, q: float) -> float:
     """The ``q``-th percentile of ``values`` (s), in ms."""
     return float(np.percentile(values, q) * 1e3)
+
+
+def folder_bytes(folder: Path) -> int:
+    """The size of every file under ``folder`` (a protocol's recordings), bytes."""
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())

@@ -347,7 +347,7 @@ def rollout_driven(
             stacked = np.stack([driven[k] for k in ks])  # (n, m, C): all parts' means at once
             counts = np.diff(np.append(bounds, m))[None, :, None]
             means = np.add.reduceat(stacked, bounds, axis=1) / counts
-        for c, lo in enumerate(range(0, m, part)):
+        for c, lo in enumerate(bounds.tolist()):
             hi = min(lo + part, m)
             if means is not None:
                 held = means[:, c]
