@@ -233,15 +233,21 @@ def test_step_damping_shortens_the_steps_not_the_optimum(zernike_model, magnet_r
     assert firsts[1] < 0.9 * firsts[0]
 
 
+@pytest.mark.parametrize("compile_", [False, True], ids=["expanded", "compiled"])
 def test_the_objective_sums_the_residuals_over_the_simulated_plan(
-    zernike_model, magnet_robot, rng
+    zernike_model, magnet_robot, rng, compile_
 ) -> None:
     """OCP.objective (one CasADi function, the checked steps' merit) against the stage and
     terminal residuals summed in a Python loop over states stepped one by one (each position
     held within the bound), for random currents on a problem whose heading term is active
-    and whose target lies outside the bound: equal to rounding."""
-    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=False))
+    and whose target lies outside the bound: equal to rounding. Both of its forms: the graph
+    expanded to scalar operations (run uncompiled) and the graph compiled to C."""
+    from magrun.compiled import compilation_enabled
+
+    nmpc = NMPC(zernike_model, magnet_robot, NMPCConfig(compile=compile_))
     ocp = nmpc.problem
+    compiled_c = compile_ and compilation_enabled()
+    assert ocp.objective.class_name() == ("External" if compiled_c else "SXFunction")
     state, ref, previous = _problem("wall")
     x0, u_prev, par = nmpc._start(state, ref, previous)
     X, before, J = x0 / STATE_SCALE, u_prev, 0.0
