@@ -376,6 +376,53 @@ def test_a_calibration_recorded_elsewhere_is_asked_for(coils, tmp_path: Path) ->
     assert "--set controller.coil_gains=PATH" in result.output
 
 
+def test_a_phantom_recorded_elsewhere_is_asked_for_and_then_replays(tmp_path: Path) -> None:
+    """The same for a phantom, whose error names the setting with the workspace kind between
+    its parts (``workspace.spine_phantom.phantom``): replay says ``--set workspace.phantom``,
+    and with it the recording replays."""
+    import shutil
+
+    shipped = Path(__file__).parents[1] / "protocols" / "phantoms" / "spine_l3l4.yaml"
+    phantom = tmp_path / "channel.yaml"
+    shutil.copy(shipped, phantom)
+    overrides = (
+        "methods=[baseline3]", "sweep.tracking_rate_hz=[25.5]", "duration_s=0.5",
+        "robot=drug_delivery", f"workspace={{kind: spine_phantom, phantom: {phantom}}}",
+        "trajectory={kind: out_and_back, path: phantom, speed_mm_s: 3}",
+    )  # fmt: skip
+    path = record_tiny(tmp_path / "rec", overrides)["baseline3"]
+    moved = tmp_path / "elsewhere.yaml"
+    phantom.rename(moved)
+    out = tmp_path / "replayed.mcap"
+    refused = CliRunner().invoke(cli, ["replay", str(path), "--out", str(out)])
+    assert refused.exit_code == 2, refused.output
+    assert "--set workspace.phantom=PATH" in refused.output
+    assert not out.exists()
+    given = ["replay", str(path), "--out", str(out), "--set", f"workspace.phantom={moved}"]
+    replayed = CliRunner().invoke(cli, given)
+    assert replayed.exit_code == 0, replayed.output
+    assert out.exists()
+
+
+@pytest.mark.parametrize(
+    ("message", "key", "named"),
+    [
+        ("workspace.spine_phantom.phantom: cannot read", "workspace.phantom", True),
+        ("workspace.phantom.phantom: cannot read", "workspace.phantom", True),
+        ("workspace.phantom: cannot read", "workspace.phantom", True),
+        ("controller.coil_gains: cannot read", "controller.coil_gains", True),
+        ("simulation.plant_seed: too large", "simulation.plant", False),
+        ("myworkspace.phantom: cannot read", "workspace.phantom", False),
+    ],
+)
+def test_a_recorded_file_setting_is_recognised_in_an_error(
+    message: str, key: str, named: bool
+) -> None:
+    from magrun.replay.common import _names_setting
+
+    assert _names_setting(message, key) is named
+
+
 # --------------------------------------------------------------------------------------------
 # counterfactual re-simulation
 

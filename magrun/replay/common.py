@@ -4,6 +4,7 @@ protocol, and the RMS error of one pose stream against another."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,7 +46,7 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
         hints = [
             f"\n(a {what} recorded elsewhere: give its path, --set {key}=PATH)"
             for key, what in _RECORDED_FILES.items()
-            if key in str(exc)
+            if _names_setting(str(exc), key)
         ]
         raise ReplayError(f"{exc}{''.join(hints)}") from exc
     try:
@@ -57,6 +58,14 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
         )  # fmt: skip
     except (KeyError, ValueError, TypeError) as exc:
         raise ReplayError(f"{rec.path}: the `trial` metadata record is incomplete: {exc}") from exc
+
+
+def _names_setting(message: str, key: str) -> bool:
+    """Whether an error ``message`` names the dotted setting ``key``, also where the error's
+    location has a union's tag between its parts (``workspace.spine_phantom.phantom`` for
+    ``workspace.phantom``)."""
+    pattern = r"\.(?:\w+\.)?".join(re.escape(part) for part in key.split("."))
+    return re.search(rf"(?<![\w.]){pattern}(?![\w])", message) is not None
 
 
 #: protocol settings that name files, as replay's errors hint at them
