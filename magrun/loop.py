@@ -229,7 +229,7 @@ def run_trial(
             k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
             measured=z, estimated=out.estimate, predicted=prediction, desired=desired,
             currents=applied, status=out.status, compute_time=c, frame=obs.frame,
-            latency=rig.last_latency, safety_stop=safety.reason,
+            latency=rig.last_latency, safety_stop=safety.reason, measured_age=age,
         )  # fmt: skip
         for name, value in (
             ("t", np.array([obs.t])),

@@ -67,6 +67,7 @@ class Tick:
     frame: NDArray[np.uint8] | None = None
     latency: float = math.nan  # s, the tick's frame to the rig's ack (hardware rigs)
     safety_stop: str = ""  # the safety layer's reason, once it has tripped
+    measured_age: float = 0.0  # s: how long before ``t`` the measurement's frame was taken
 
 
 #: the recorded pose streams, each an MCAP topic ``/robot/pose/<stream>``

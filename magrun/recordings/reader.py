@@ -52,6 +52,9 @@ class RecordedTrial:
     currents: FloatArray
     channel_names: tuple[str, ...]
     compute_time: FloatArray
+    #: (n,) s: how long before its tick each measurement's frame was taken (its message's
+    #: log time less its time stamp); NaN where no measurement arrived
+    measured_age: FloatArray | None = None
 
     @property
     def trial(self) -> dict[str, Any]:
@@ -64,6 +67,12 @@ class RecordedTrial:
     def measured(self, k: int) -> FloatArray | None:
         z = self.poses["measured"][k]
         return None if np.isnan(z[0]) else z
+
+    def age(self, k: int) -> float:
+        """How long before tick ``k`` its measurement's frame was taken, s (0 without one)."""
+        if self.measured_age is None or not math.isfinite(age := self.measured_age[k]):
+            return 0.0
+        return float(age)
 
 
 def read_ticks(path: str | Path) -> RecordedTrial:
@@ -97,7 +106,11 @@ def read_ticks(path: str | Path) -> RecordedTrial:
                 row = rows.setdefault(message.log_time, {})
                 topic = channel.topic
                 if topic.startswith("/robot/pose/"):
-                    row[topic.rsplit("/", 1)[1]] = tuple(pose_of(msg))
+                    stream = topic.rsplit("/", 1)[1]
+                    row[stream] = tuple(pose_of(msg))
+                    if stream == "measured":
+                        stamp = msg.timestamp.seconds * 1_000_000_000 + msg.timestamp.nanos
+                        row["measured_age"] = (message.log_time - stamp) / 1e9
                 elif topic == "/coils/currents":
                     names = tuple(msg.names)
                     row["currents"] = tuple(msg.currents)
@@ -127,6 +140,7 @@ def read_ticks(path: str | Path) -> RecordedTrial:
         currents=np.array([rows[t]["currents"] for t in ticks], dtype=np.float64),
         channel_names=names,
         compute_time=np.array([rows[t].get("compute_time", math.nan) for t in ticks]),
+        measured_age=np.array([rows[t].get("measured_age", math.nan) for t in ticks]),
     )
 
 

@@ -13,14 +13,16 @@ MCAP topic                        schema (protobuf)              Rerun entity
 ================================  =============================  ==============================
 
 ``<stream>`` is ``actual``, ``tracked``, ``measured``, ``estimated``, ``predicted`` and
-``desired``. Log time is trial time in ns. MCAP metadata records: ``trial`` (protocol,
-method, condition values, seed, index, robot, software versions), ``protocol`` (the protocol
-as JSON), ``workspace`` (``boundaries``, m, and the square's ``half_width_m``, as JSON),
-``view`` (the recording's id and name, the camera's pixel mapping: what
-:func:`~magrun.recordings.rerun_log.rrd_from_mcap` needs) and, at the end, ``recorder``
-(ticks written, dropped, status). The ``.rrd`` (:mod:`magrun.recordings.rerun_log`) also
-carries ``/errors/*`` series and a blueprint: the camera view with paths overlaid, the
-workspace from above with its boundaries, and time series of currents and errors.
+``desired``. Log time is trial time in ns; a message's time stamp is its log time, except a
+measured pose's: the time its frame was taken (a late frame's age earlier). MCAP metadata
+records: ``trial`` (protocol, method, condition values, seed, index, robot, software
+versions), ``protocol`` (the protocol as JSON), ``workspace`` (``boundaries``, m, and the
+square's ``half_width_m``, as JSON), ``view`` (the recording's id and name, the camera's
+pixel mapping: what :func:`~magrun.recordings.rerun_log.rrd_from_mcap` needs) and, at the
+end, ``recorder`` (ticks written, dropped, status). The ``.rrd``
+(:mod:`magrun.recordings.rerun_log`) also carries ``/errors/*`` series and a blueprint: the
+camera view with paths overlaid, the workspace from above with its boundaries, and time
+series of currents and errors.
 
 The control loop calls :meth:`TrialRecorder.log` with each :class:`~magrun.records.Tick`; that
 only puts it on a bounded queue (never blocks). A writer thread encodes images and writes both
@@ -96,7 +98,8 @@ def _stamp(msg: Any, t_ns: int) -> None:
 
 
 def pose_message(pose: FloatArray, t_ns: int) -> PoseInFrame:
-    """A pose (x, y, θ) as ``foxglove.PoseInFrame``: z = 0, yaw θ about +z as a quaternion."""
+    """A pose (x, y, θ) as ``foxglove.PoseInFrame``, stamped ``t_ns`` (the time the pose is
+    of): z = 0, yaw θ about +z as a quaternion."""
     msg = PoseInFrame(frame_id=FRAME_ID)
     _stamp(msg, t_ns)
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (
@@ -382,7 +385,9 @@ class TrialRecorder(Recorder):
             self.stats.images += 1
         for name, pose in poses.items():
             if pose is not None:
-                self._put(f"/robot/pose/{name}", pose_message(pose, t_ns), t_ns)
+                # a measurement is stamped when its frame was taken, logged when it arrived
+                stamp = t_ns - round(tick.measured_age * 1e9) if name == "measured" else t_ns
+                self._put(f"/robot/pose/{name}", pose_message(pose, stamp), t_ns)
         cur = CoilCurrents(names=list(setup.channel_names), currents=tick.currents.tolist())
         _stamp(cur, t_ns)
         self._put("/coils/currents", cur, t_ns)

@@ -6,7 +6,9 @@ recorded measurement (or none, between fluoroscopy frames) and, as its prior, th
 the controller's model made at the previous tick *from the replayed estimate* under the
 currents the recording says were applied (:meth:`~magrun.control.base.Controller.replay_step`).
 A changed filter therefore sees the consequences of its own estimates; only the plan is taken
-from the recording, since the robot really moved under those currents.
+from the recording, since the robot really moved under those currents. A late frame is fused
+at the tick it was taken, as live: its age is the measured pose's log time less its time stamp
+(:attr:`~magrun.recordings.reader.RecordedTrial.measured_age`).
 
 :func:`write_replay` writes the result: a copy of the recording's channels and metadata with
 ``/replay/<label>/robot/pose/estimated`` and ``…/predicted`` added, a ``replay`` metadata
@@ -123,7 +125,9 @@ def replay_estimator(
     estimated = np.empty((n, 3))
     predicted = np.full((n, 3), np.nan)
     for k in range(n):
-        estimated[k], prediction = controller.replay_step(rec.measured(k), rec.currents[k])
+        estimated[k], prediction = controller.replay_step(
+            rec.measured(k), rec.currents[k], rec.age(k)
+        )
         if k + 1 < n:
             predicted[k + 1] = prediction
     result = EstimatorReplay(
