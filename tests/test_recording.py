@@ -153,6 +153,22 @@ def test_the_blueprint_plots_each_error_in_its_own_unit() -> None:
         assert origins == (["/camera", "/workspace"] if with_camera else ["/workspace"])
 
 
+@pytest.mark.parametrize(("channels", "share"), [(3, 1.0), (8, 8 / 3.5), (14, 4.0)])
+def test_the_currents_view_grows_with_the_coils_so_its_legend_fits(
+    channels: int, share: float
+) -> None:
+    """A plot's legend is cut at the plot's height: the currents' view gets a share of the
+    column per 3.5 coils (at least one), the other views one each, with and without replays."""
+    from magrun.recordings.rerun_log import blueprint
+
+    for replays in (False, True):
+        _, series = blueprint(False, None, replays, channels).root_container.contents
+        assert series.contents[0].origin == "/coils/currents"
+        shares = list(series.row_shares)
+        assert shares[0] == pytest.approx(share)
+        assert shares[1:] == [1.0] * (len(series.contents) - 1)
+
+
 def test_the_declared_messages_are_the_recorded_schemas_and_the_documented_proto() -> None:
     """magrun's own messages, declared once (magrun.recordings.schemas): the descriptor the
     pool holds (what every MCAP schema record carries) is the declared one, field by field;

@@ -127,12 +127,32 @@ def test_the_legend_names_every_pose_stream_in_its_colour(tmp_path: Path) -> Non
     assert len(set(legend["Points2D:colors"])) == len(legend["Points2D:colors"])
     colours = static["/coils/currents"]["SeriesLines:colors"]
     assert len(set(colours)) == 8  # one distinct colour per coil
-    # the critical wall is named on the view and has its own colour
+    # the critical wall has its own colour and is named on the view beside it, 2.5 mm off
+    # its middle on the side away from the channel (the other wall is at y = +5 mm)
     anterior = static["/workspace/boundaries/anterior"]
     posterior = static["/workspace/boundaries/posterior"]
     assert anterior["LineStrips2D:labels"] == ["anterior (critical)"]
-    assert anterior["LineStrips2D:show_labels"] == [True]
+    assert anterior["LineStrips2D:show_labels"] == [False]
     assert anterior["LineStrips2D:colors"] != posterior["LineStrips2D:colors"]
+    label = static["/workspace/boundaries/anterior/label"]
+    assert label["Points2D:labels"] == ["anterior (critical)"]
+    assert label["Points2D:show_labels"] == [True]
+    np.testing.assert_allclose(label["Points2D:positions"], [[0.0, -0.0025]], atol=1e-9)
+
+
+def test_the_critical_walls_name_lies_off_the_spine_phantoms_channel() -> None:
+    """On the shipped spine phantom the anterior wall's name lies 2.5 mm inside that wall's
+    circle (radius 10.5 mm about the dural sac's centre at (-6, 0) mm), on the dural sac, not
+    in the channel between 10.5 and 15.5 mm."""
+    from magrun.phantom import load_phantom
+    from magrun.recordings.rerun_log import label_anchor
+
+    phantom = load_phantom(Path(__file__).parents[1] / "protocols/phantoms/spine_l3l4.yaml")
+    walls = dict(phantom.boundaries)
+    anterior = np.asarray(walls.pop("anterior"))
+    anchor = label_anchor(anterior, list(walls.values()))
+    radius = float(np.hypot(*(anchor - np.array([-6e-3, 0.0]))))
+    assert radius == pytest.approx(8.0e-3, abs=0.05e-3)
 
 
 def test_an_mcap_gives_the_recorders_views_name_and_time_axis(tmp_path: Path) -> None:

@@ -93,14 +93,25 @@ LIVE_FLUSH_TIMEOUT_S = 5.0
 POINT_RADIUS = -3.5
 LINE_RADIUS = -0.75
 PATH_RADIUS = -1.25
+#: coils whose legend lines one share of the time-series column holds (:func:`blueprint`):
+#: with the four plots in equal shares the viewer showed six of the paper rig's eight coils;
+#: at 3.5 a share its eight get 2.3 shares, by that measure room for ten lines (nine beside
+#: a replay's plot)
+LEGEND_LINES_PER_SHARE = 3.5
 
 
 def blueprint(
-    with_camera: bool, half_width: float | None = None, with_replays: bool = False
+    with_camera: bool,
+    half_width: float | None = None,
+    with_replays: bool = False,
+    channels: int = 0,
 ) -> Any:
     """The ``.rrd``'s layout: camera, workspace from above (framed on the square of
     ``half_width`` m when given), and one time-series view per unit; with replays, also
-    the estimation error of the recorded and the replayed estimators."""
+    the estimation error of the recorded and the replayed estimators. The currents' view is
+    taller by ``channels`` (its legend, a line per coil, must fit: a plot's legend is cut at
+    the plot's height, not scrolled): a share of the column per
+    :data:`LEGEND_LINES_PER_SHARE` coils, the other views one share each."""
     import rerun.blueprint as rrb
 
     views: list[Any] = []
@@ -131,8 +142,35 @@ def blueprint(
                 origin="/errors/estimation_mm", name="estimation error (mm): recorded, replayed"
             ),
         )
-    series = rrb.Vertical(*plots)
+    shares = [max(1.0, channels / LEGEND_LINES_PER_SHARE)] + [1.0] * (len(plots) - 1)
+    series = rrb.Vertical(*plots, row_shares=shares)
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
+
+
+#: how far from its wall the critical boundary's name is put, m
+LABEL_OFFSET = 2.5e-3
+
+
+def label_anchor(line: FloatArray, others: list[FloatArray]) -> FloatArray:
+    """Where a wall's name goes: :data:`LABEL_OFFSET` from the middle (by length) of
+    ``line`` (n, 2), m, along its normal, on the side farther from the ``others`` walls: off
+    the channel between them (a label on the wall itself sits on the channel)."""
+    p = np.asarray(line, dtype=np.float64)
+    if len(p) < 2:
+        return p[0] if len(p) else np.zeros(2)
+    seg = np.diff(p, axis=0)
+    length = np.hypot(seg[:, 0], seg[:, 1])
+    along = np.concatenate([[0.0], np.cumsum(length)])
+    i = int(np.clip(np.searchsorted(along, along[-1] / 2) - 1, 0, len(seg) - 1))
+    f = (along[-1] / 2 - along[i]) / length[i] if length[i] > 0 else 0.0
+    middle = p[i] + f * seg[i]
+    normal = np.array([-seg[i, 1], seg[i, 0]]) / max(float(length[i]), 1e-12)
+    candidates = [middle + LABEL_OFFSET * normal, middle - LABEL_OFFSET * normal]
+    rest = np.concatenate([np.asarray(o, dtype=np.float64) for o in others]) if others else None
+    if rest is None or not len(rest):
+        return candidates[0]
+    nearest = [float(np.min(np.hypot(*(rest - c).T))) for c in candidates]
+    return candidates[int(np.argmax(nearest))]
 
 
 def recording_name(trial: dict[str, Any]) -> str:
@@ -166,7 +204,10 @@ class RerunLog:
             color = REPLAY_COLORS[i % len(REPLAY_COLORS)]
             self._colors[f"replay/{label}/estimated"] = color
             self._colors[f"replay/{label}/predicted"] = _lighter(color)
-        layout = blueprint(self.camera is not None, setup.workspace_half_width, bool(replays))
+        layout = blueprint(
+            self.camera is not None, setup.workspace_half_width, bool(replays),
+            len(setup.channel_names),
+        )  # fmt: skip
         self._rec = rr.RecordingStream(
             "magrun", recording_id=setup.recording_id or None, send_properties=False
         )
@@ -224,10 +265,20 @@ class RerunLog:
                 rr.LineStrips2D(
                     [line], colors=[CRITICAL_COLOR if is_critical else BOUNDARY_COLOR],
                     radii=[PATH_RADIUS], labels=[f"{name} (critical)" if is_critical else name],
-                    show_labels=is_critical,
+                    show_labels=False,
                 ),
                 static=True,
             )  # fmt: skip
+            if is_critical:  # named beside the wall, away from the channel the robot is in
+                others = [b for n, b in setup.boundaries.items() if n != name]
+                rec.log(
+                    f"/workspace/boundaries/{name}/label",
+                    rr.Points2D(
+                        [label_anchor(line, others)], colors=[CRITICAL_COLOR],
+                        radii=[LINE_RADIUS], labels=[f"{name} (critical)"], show_labels=True,
+                    ),
+                    static=True,
+                )  # fmt: skip
         if setup.reference is not None and len(setup.reference):
             ref = np.asarray(setup.reference)[:, :2]
             desired = STREAM_COLORS["desired"]
