@@ -11,6 +11,12 @@ import click
 from magrun.cli.common import InputError, InputFile
 
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+#: what the plant file's frame age rests on (BenchTiming.frame_age_from), in words
+AGE_FROM = {
+    "time stamps": "the measured poses' time stamps (each frame's time) against their arrival",
+    "time shift": "the measured poses against the actual ones, shifted in time (the "
+    "recordings carry no frame times)",
+}
 
 
 @click.command("identify")
@@ -158,8 +164,8 @@ def identify_cmd(
         lines = [
             f"# a bench identified by magrun identify from {timing.frames} measurements in "
             f"{len(recordings)} recording(s): {', '.join(p.name for p in recordings)}",
-            "# frame age: the measured poses against the actual ones; tracker noise: what is "
-            "left beyond the condition's noise; amplifier lag: RMS one-tick prediction error (mm)",
+            f"# frame age: {AGE_FROM[timing.frame_age_from]}; tracker noise: what is left beyond "
+            "the condition's noise; amplifier lag: RMS one-tick prediction error (mm)",
             "# per lag tried: "
             + ", ".join(f"{k * 1e3:g} ms {v:.4f}" for k, v in timing.lag_scan.items()),
             f"# friction: the one-tick predictions' shortfall along the motion, over "
@@ -173,6 +179,7 @@ def identify_cmd(
         extra = {
             "out": str(out), "name": robot_name, "gains": gains_out and str(gains_out),
             "plant": plant_terms, "plant_file": plant_out and str(plant_out),
+            "frame_age_from": timing and timing.frame_age_from,
         }  # fmt: skip
         click.echo(json.dumps({**result.summary(), **extra}))
         return
@@ -181,9 +188,10 @@ def identify_cmd(
     click.echo(f"wrote {out} (robot {robot_name})")
     if gains_out is not None:
         click.echo(f"wrote {gains_out} (coil gains)")
-    if plant_out is not None and plant_terms is not None:
+    if plant_out is not None and plant_terms is not None and timing is not None:
         click.echo(
             "bench: "
             + ", ".join(f"{k} {v:g}" for k, v in plant_terms.items())
+            + f"\nframe age: {AGE_FROM[timing.frame_age_from]}"
             + f"\nwrote {plant_out} (plant file)"
         )

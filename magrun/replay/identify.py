@@ -223,6 +223,9 @@ class BenchTiming:
     lag_scan: dict[float, float] = field(default_factory=dict)  # τ (s) -> RMS error (mm)
     friction: float = 0.0  # m/s, the floor's kinetic friction as a drag speed
     moving_ticks: int = 0  # ticks the friction estimate rests on
+    #: what the frame age rests on: "time stamps" (each measured pose's, its frame's time)
+    #: or "time shift" (the measured poses against the actual ones; :func:`frame_age`)
+    frame_age_from: str = "time shift"
 
     def plant_terms(self) -> dict[str, float]:
         """The plant file's settings (unit-suffixed, as ``simulation.plant: FILE`` reads)."""
@@ -241,13 +244,26 @@ AGE_GRID = np.arange(0.0, 0.5, 5e-4)
 LAG_GRID = (0.0, 0.0025, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08)
 
 
-def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatArray]:
-    """The time shift between the measured poses and the actual ones: the age a that
-    minimises Σ |measured(tₖ) − actual(tₖ − a)|² over every measurement (the actual poses
-    interpolated linearly between ticks; residuals beyond 5 × their median left out, as
-    outliers), refined by a parabola through the best grid point and its neighbours.
-    Returns the age (s), the number of measurements, their residuals (m, 3) at it, and each
-    measurement's own fluoroscopy noise σ (m,), m, from its recording's condition."""
+def stamped(rec: Any) -> bool:
+    """Whether a recording's measured poses carry their frames' times: some measurement
+    stamped earlier than its tick (a recording whose frames were never late, or whose rig
+    gave no frame times, has every stamp on its tick)."""
+    ages = rec.measured_age
+    return ages is not None and bool(np.any(np.nan_to_num(ages) > 0))
+
+
+def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatArray, str]:
+    """How old the measured poses are when they arrive. Where every recording's measured
+    poses carry their frames' times (:func:`stamped`), their mean age (arrival less the
+    frame's time), the residuals taken at each frame's own time. Else the time shift between
+    the measured poses and the actual ones: the age a that minimises
+    Σ |measured(tₖ) − actual(tₖ − a)|² over every measurement (residuals beyond 5 × their
+    median left out, as outliers), refined by a parabola through the best grid point and its
+    neighbours. The actual poses are interpolated linearly between ticks. Returns the age
+    (s), the number of measurements, their residuals (m, 3) at it, each measurement's own
+    fluoroscopy noise σ (m,), m, from its recording's condition, and what the age rests on
+    (``"time stamps"`` or ``"time shift"``)."""
+    from_stamps = bool(recordings) and all(stamped(rec) for rec in recordings)
 
     def residuals(a: float) -> tuple[FloatArray, FloatArray]:
         parts, sigmas = [], []
@@ -255,9 +271,10 @@ def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatA
             t = rec.t
             z = rec.poses["measured"]
             act = rec.poses["actual"]
-            ok = np.all(np.isfinite(z), axis=1) & (t - a >= t[0])
+            age = np.nan_to_num(rec.measured_age) if from_stamps else np.full(len(t), a)
+            ok = np.all(np.isfinite(z), axis=1) & (t - age >= t[0])
             good = np.all(np.isfinite(act), axis=1)
-            tt = t[ok] - a
+            tt = t[ok] - age[ok]
             at = np.column_stack([np.interp(tt, t[good], act[good, i]) for i in range(3)])
             r = z[ok] - at
             r[:, 2] = (r[:, 2] + np.pi) % (2 * np.pi) - np.pi
@@ -267,6 +284,15 @@ def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatA
         if not parts:
             return np.empty((0, 3)), np.empty(0)
         return np.concatenate(parts), np.concatenate(sigmas)
+
+    if from_stamps:
+        r, sigma = residuals(0.0)
+        ages = np.concatenate(
+            [rec.measured_age[np.isfinite(rec.measured_age)] for rec in recordings]
+        )
+        if len(r) == 0:
+            raise ReplayError("no measured poses with an actual pose to compare: no frame age")
+        return float(np.mean(ages)), len(r), r, sigma, "time stamps"
 
     def cost(a: float) -> float:
         r, _ = residuals(a)
@@ -287,7 +313,26 @@ def frame_age(recordings: Sequence[Any]) -> tuple[float, int, FloatArray, FloatA
     r, sigma = residuals(best)
     if len(r) == 0:
         raise ReplayError("no measured poses with an actual pose to compare: no frame age")
-    return max(best, 0.0), len(r), r, sigma
+    return max(best, 0.0), len(r), r, sigma, "time shift"
+
+
+def tracker_noise(residuals: FloatArray, condition: FloatArray) -> tuple[float, float, float]:
+    """The tracker's own noise from the measurements' ``residuals`` (m, 3) against the
+    actual poses and each one's fluoroscopy noise σ ``condition`` (m,), m: the position's
+    σ per axis beyond the condition's (in quadrature, 0 where the residuals are no wider),
+    the heading's σ (rad), and the share of outliers, measurements further than 5 σ of
+    all the noise they carry, the condition's and the tracker's (residuals beyond 5 × their
+    median square, and headings beyond 5 robust σ, left out of the σ's)."""
+    d2 = np.sum(residuals[:, :2] ** 2, axis=1)
+    keep = d2 <= 25 * np.median(d2)
+    cond2 = float(np.mean(condition[keep] ** 2))
+    per_axis = float(np.sqrt(max(np.mean(d2[keep]) / 2 - cond2, 0.0)))
+    # the heading's outliers (a tracker that flips the robot end for end) left out alike
+    th = np.abs(residuals[:, 2])
+    heading = float(np.sqrt(np.mean(th[th <= 5 * 1.4826 * np.median(th)] ** 2)))
+    total = np.sqrt(per_axis**2 + condition**2)  # each measurement's σ per axis
+    outliers = float(np.mean(np.sqrt(d2) > 5 * np.maximum(total, 1e-9) * math.sqrt(2)))
+    return per_axis, heading, outliers
 
 
 def driven_currents(
@@ -373,9 +418,10 @@ def bench_timing(
     """The frame age, the tracker's noise and the amplifiers' lag of the bench that made
     the recordings at ``paths``:
 
-    - frame age and tracker noise: :func:`frame_age` (the measured poses against the actual
-      ones); the noise is the residuals' spread less the fluoroscopy mimic's σ of each
-      recording's condition (in quadrature), the outliers those beyond 5 σ;
+    - frame age and tracker noise: :func:`frame_age` (the measured poses' time stamps, else
+      the measured poses against the actual ones); the noise is the residuals' spread less
+      the fluoroscopy mimic's σ of each recording's condition (in quadrature), the outliers
+      those beyond 5 σ;
     - amplifier lag: the τ of :data:`LAG_GRID` (refined by a parabola) whose driven currents
       (:func:`driven_currents`) give the least one-tick prediction error from the actual
       poses, with the fitted ``force_factor`` and ``gains``.
@@ -386,15 +432,8 @@ def bench_timing(
     recs = [read_ticks(p) for p in paths]
     if not recs:
         raise ReplayError("identify needs at least one recording")
-    age, frames, r, sigma_cond = frame_age(recs)
-    d2 = np.sum(r[:, :2] ** 2, axis=1)
-    keep = d2 <= 25 * np.median(d2)
-    cond2 = float(np.mean(sigma_cond[keep] ** 2))
-    per_axis = float(np.sqrt(max(np.mean(d2[keep]) / 2 - cond2, 0.0)))
-    # the heading's outliers (a tracker that flips the robot end for end) left out alike
-    th = np.abs(r[:, 2])
-    heading = float(np.sqrt(np.mean(th[th <= 5 * 1.4826 * np.median(th)] ** 2)))
-    outliers = float(np.mean(np.sqrt(d2) > 5 * max(per_axis, 1e-9) * math.sqrt(2)))
+    age, frames, r, sigma_cond, age_from = frame_age(recs)
+    per_axis, heading, outliers = tracker_noise(r, sigma_cond)
     protocols = [trial_of(rec).protocol for rec in recs]
     system = recorded_system(protocols)
     coils = system.coils
@@ -429,7 +468,7 @@ def bench_timing(
     return BenchTiming(
         frame_age=age, frames=frames, tracker_position=per_axis, tracker_heading=heading,
         outlier_rate=outliers, amplifier_tau=tau, lag_scan=scan, friction=friction,
-        moving_ticks=moving,
+        moving_ticks=moving, frame_age_from=age_from,
     )  # fmt: skip
 
 
