@@ -603,8 +603,9 @@ def test_the_kernel_links_another_hpipm_build_or_warns(
 
     if not compiled_mod.compilation_enabled():
         pytest.skip("no C compiler")
+    _, u_default = _solve(zernike_model, magnet_robot, "rti", "slew")  # the session's cache
+    # libraries linked to this test's prefix go to a cache of their own, which goes with it
     monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path / "cache"))
-    _, u_default = _solve(zernike_model, magnet_robot, "rti", "slew")
     wheel = rti_kernel.casadi_folder()
     prefix = tmp_path / "hpipm"
     (prefix / "lib").mkdir(parents=True)
