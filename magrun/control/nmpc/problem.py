@@ -225,7 +225,7 @@ class OCP:
         # (gcc spends them allocating registers in one huge function); uncompiled, the
         # expanded graph is the faster (84 against 455 us in CasADi's virtual machine)
         objective = ca.Function("nmpc_objective", [x0, u_prev, par, U], [J])
-        built = compiled(objective) if cfg.compile else objective
+        built = self.maybe_compiled(objective)
         return objective.expand() if built is objective else built
 
 
