@@ -20,6 +20,7 @@ from magrun.recordings.rerun_log import (
     blueprint,
     recording_name,
     rrd_from_mcap,
+    view_frame,
 )
 from magrun.recordings.writer import RecordingSetup
 from magrun.tracking.camera import Camera
@@ -59,25 +60,26 @@ def _timed(path: Path, entity: str, component: str) -> tuple[np.ndarray, np.ndar
 def _setup(n: int, **kw: Any) -> RecordingSetup:
     """A phantom-like setup whose reference is the desired path of ``_ticks(n)``."""
     ticks = _ticks(n, None)
-    return RecordingSetup(
-        trial={"protocol": "demo", "method": "proposed", "trial": 2, "seed": 7,
-               "critical_boundary": "anterior"},
-        channel_names=tuple("abcdefgh"),
-        boundaries={"anterior": np.array([[-0.01, 0.0], [0.01, 0.0]]),
-                    "posterior": np.array([[-0.01, 0.005], [0.01, 0.005]])},
-        workspace_half_width=HALF,
-        reference=np.stack([t.desired for t in ticks]),
-        recording_id="demo/proposed/trial-2@7",
-        name="demo/proposed/trial-2 (seed 7)",
-        **kw,
-    )  # fmt: skip
+    fields: dict[str, Any] = {
+        "trial": {"protocol": "demo", "method": "proposed", "trial": 2, "seed": 7,
+                  "critical_boundary": "anterior"},
+        "channel_names": tuple("abcdefgh"),
+        "boundaries": {"anterior": np.array([[-0.01, 0.0], [0.01, 0.0]]),
+                       "posterior": np.array([[-0.01, 0.005], [0.01, 0.005]])},
+        "workspace_half_width": HALF,
+        "reference": np.stack([t.desired for t in ticks]),
+        "recording_id": "demo/proposed/trial-2@7",
+        "name": "demo/proposed/trial-2 (seed 7)",
+    }  # fmt: skip
+    return RecordingSetup(**{**fields, **kw})
 
 
 def test_the_workspace_view_is_y_up_and_framed_on_the_square(tmp_path: Path) -> None:
     """Rerun's 2D views draw +y downward; each drawn entity under /workspace is mirrored in
     y exactly once, so a point at +y appears above the centre, as in the paper's figures
-    and the camera image. The view is framed on the square (drawn) with a margin."""
-    rec = _record(tmp_path / "t", _setup(30), _ticks(30, None))
+    and the camera image. Without a phantom the view is framed on the square (drawn) with a
+    margin."""
+    rec = _record(tmp_path / "t", _setup(30, boundaries={}), _ticks(30, None))
     static = _static(rec.rrd_path)
     flips = {e for e, comps in static.items() if "Transform3D:scale" in comps}
     assert flips == {f"/workspace/{name}" for name in WORKSPACE_ROOTS}
@@ -100,10 +102,8 @@ def test_the_workspace_view_is_y_up_and_framed_on_the_square(tmp_path: Path) -> 
     np.testing.assert_allclose(np.abs(square), HALF, rtol=1e-6)  # float32 in the .rrd
     assert len(square) == 5
     assert np.allclose(square[0], square[-1])
-    view = blueprint(True, HALF).root_container.contents[0].contents[1]
-    (bounds,) = view.properties["VisualBounds2D"].range.as_arrow_array().to_pylist()
-    lo_x, hi_x = bounds["x_range"]
-    lo_y, hi_y = bounds["y_range"]
+    assert view_frame(HALF, {}) == ((0.0, 0.0), HALF)
+    lo_x, hi_x, lo_y, hi_y = _bounds(blueprint(True, view_frame(HALF, {})))
     assert lo_x == pytest.approx(-HALF * (1 + FRAME_MARGIN))
     assert hi_x == -lo_x
     assert lo_y == pytest.approx(-HALF * (1 + FRAME_MARGIN))
@@ -113,46 +113,59 @@ def test_the_workspace_view_is_y_up_and_framed_on_the_square(tmp_path: Path) -> 
     assert -legend[:, 1].max() < hi_y
 
 
+def _bounds(layout: Any) -> list[float]:
+    """The workspace view's visual bounds in its own (y-down) coordinates, m: x lo, hi, y lo,
+    hi."""
+    view = layout.root_container.contents[0].contents[-1]
+    (bounds,) = view.properties["VisualBounds2D"].range.as_arrow_array().to_pylist()
+    return [*bounds["x_range"], *bounds["y_range"]]
+
+
+def test_a_phantom_fills_the_workspace_view_with_the_legend_under_it(tmp_path: Path) -> None:
+    """With a phantom the view is framed on its walls' bounding square, wherever it lies in
+    the workspace (here 20 x 5 mm about (0, 2.5) mm in a 100 mm square), with the legend
+    under it in view: every wall and every legend entry inside the bounds, and the walls
+    spanning the frame's width less its margin."""
+    rec = _record(tmp_path / "t", _setup(30), _ticks(30, None))
+    static = _static(rec.rrd_path)
+    (cx, cy), h = view_frame(HALF, _setup(1).boundaries) or ((np.nan, np.nan), np.nan)
+    assert (cx, cy, h) == pytest.approx((0.0, 0.0025, 0.01))
+    lo_x, hi_x, lo_y, hi_y = _bounds(blueprint(True, ((cx, cy), h), legend_rows=2))
+    assert hi_x - lo_x == pytest.approx(2 * h * (1 + FRAME_MARGIN))
+    walls = np.concatenate([np.asarray(b) for b in _setup(1).boundaries.values()])
+    legend = np.array(static["/workspace/legend"]["Points2D:positions"])
+    for x, y in np.concatenate([walls, legend]):  # in the view: y mirrored
+        assert lo_x < x < hi_x, (x, y)
+        assert lo_y < -y < hi_y, (x, y)
+    assert -legend[:, 1].min() > -(cy - h)  # under the walls on screen
+    # seven entries (six streams and the critical wall) in two rows of four
+    assert len(legend) == 7
+    assert len(set(np.round(legend[:, 1], 9))) == 2
+
+
 def test_the_legend_names_every_pose_stream_in_its_colour(tmp_path: Path) -> None:
     rec = _record(tmp_path / "t", _setup(5), _ticks(5, None))
     static = _static(rec.rrd_path)
     legend = static["/workspace/legend"]
     for name, colour in zip(legend["Points2D:labels"], legend["Points2D:colors"], strict=True):
-        if name == "desired":
-            continue  # the path, drawn statically
+        if name in ("desired", "anterior (critical wall)"):
+            continue  # drawn statically: the path, the wall (below)
         assert static[f"/workspace/{name}"]["Points2D:colors"] == [colour], name
-    assert set(legend["Points2D:labels"]) == {
-        "actual", "tracked", "measured", "estimated", "predicted", "desired"
-    }  # fmt: skip
     assert len(set(legend["Points2D:colors"])) == len(legend["Points2D:colors"])
     colours = static["/coils/currents"]["SeriesLines:colors"]
     assert len(set(colours)) == 8  # one distinct colour per coil
-    # the critical wall has its own colour and is named on the view beside it, 2.5 mm off
-    # its middle on the side away from the channel (the other wall is at y = +5 mm)
+    # the critical wall has its own colour, named in the legend in that colour (a name on
+    # the drawing lands on a wall or the channel at some zoom), and on hover
     anterior = static["/workspace/boundaries/anterior"]
     posterior = static["/workspace/boundaries/posterior"]
-    assert anterior["LineStrips2D:labels"] == ["anterior (critical)"]
+    assert anterior["LineStrips2D:labels"] == ["anterior (critical wall)"]
     assert anterior["LineStrips2D:show_labels"] == [False]
     assert anterior["LineStrips2D:colors"] != posterior["LineStrips2D:colors"]
-    label = static["/workspace/boundaries/anterior/label"]
-    assert label["Points2D:labels"] == ["anterior (critical)"]
-    assert label["Points2D:show_labels"] == [True]
-    np.testing.assert_allclose(label["Points2D:positions"], [[0.0, -0.0025]], atol=1e-9)
-
-
-def test_the_critical_walls_name_lies_off_the_spine_phantoms_channel() -> None:
-    """On the shipped spine phantom the anterior wall's name lies 2.5 mm inside that wall's
-    circle (radius 10.5 mm about the dural sac's centre at (-6, 0) mm), on the dural sac, not
-    in the channel between 10.5 and 15.5 mm."""
-    from magrun.phantom import load_phantom
-    from magrun.recordings.rerun_log import label_anchor
-
-    phantom = load_phantom(Path(__file__).parents[1] / "protocols/phantoms/spine_l3l4.yaml")
-    walls = dict(phantom.boundaries)
-    anterior = np.asarray(walls.pop("anterior"))
-    anchor = label_anchor(anterior, list(walls.values()))
-    radius = float(np.hypot(*(anchor - np.array([-6e-3, 0.0]))))
-    assert radius == pytest.approx(8.0e-3, abs=0.05e-3)
+    assert posterior["LineStrips2D:labels"] == ["posterior"]
+    named = dict(zip(legend["Points2D:labels"], legend["Points2D:colors"], strict=True))
+    assert named.pop("anterior (critical wall)") == anterior["LineStrips2D:colors"][0]
+    assert set(named) == {"actual", "tracked", "measured", "estimated", "predicted", "desired"}
+    assert not [e for e in static if e.startswith("/workspace/boundaries/anterior/")]
 
 
 def test_an_mcap_gives_the_recorders_views_name_and_time_axis(tmp_path: Path) -> None:

@@ -10,10 +10,13 @@ What the viewer shows (:func:`blueprint`):
 - **camera (px)**: the camera frames with the actual, predicted and measured positions and
   the desired and actual paths drawn over them;
 - **workspace from above (m)**: x to the right, y up (as in the paper's figures and the
-  camera image), framed on the workspace square, with the boundaries, the desired path and
-  the actual and predicted paths. Rerun's 2D views draw y downward and ignore view
-  coordinates, so each entity under ``/workspace`` carries a static ``Transform3D`` that
-  mirrors y: the logged values stay the true ones (hover shows metres as recorded);
+  camera image), framed on the phantom's walls where there are any (else on the workspace
+  square), with the boundaries, the desired path and the actual and predicted paths, and a
+  legend under the frame: a dot and a name per pose stream, and the critical wall's name in
+  its colour (a name on the drawing itself lands on a wall or the channel at some zoom).
+  Rerun's 2D views draw y downward and ignore view coordinates, so each entity under
+  ``/workspace`` carries a static ``Transform3D`` that mirrors y: the logged values stay the
+  true ones (hover shows metres as recorded);
 - time series, one unit per plot: coil currents (A), position error (mm), orientation
   error (°), compute time (ms).
 
@@ -100,30 +103,76 @@ PATH_RADIUS = -1.25
 LEGEND_LINES_PER_SHARE = 3.5
 
 
+#: a square the workspace view is framed on: its centre (x, y) and half-width, m
+Frame = tuple[tuple[float, float], float]
+
+
+def view_frame(half_width: float | None, boundaries: dict[str, FloatArray]) -> Frame | None:
+    """The square the workspace view is framed on: the smallest about the ``boundaries``'
+    bounding box (a phantom fills the view, however small in the workspace), else the
+    workspace square of ``half_width`` m; None with neither."""
+    walls = [np.asarray(b, dtype=np.float64).reshape(-1, 2) for b in boundaries.values()]
+    walls = [w for w in walls if len(w)]
+    if walls:
+        points = np.concatenate(walls)
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        half = float(np.max(hi - lo)) / 2
+        if half > 0:
+            centre = (lo + hi) / 2
+            return (float(centre[0]), float(centre[1])), half
+    if half_width is not None:
+        return (0.0, 0.0), float(half_width)
+    return None
+
+
+def legend_layout(frame: Frame, widths: list[int]) -> tuple[FloatArray, int]:
+    """Where the legend's entries go under ``frame``'s square, (n, 2) m, and how many rows
+    they take: :data:`LEGEND_PER_ROW` columns, an entry of width w (1 or 2) centred on w
+    adjacent columns of one row (a long name over two: the names are drawn centred under
+    their dots, in a fixed font size whatever the zoom)."""
+    (cx, cy), h = frame
+    step = 2 * h / LEGEND_PER_ROW
+    positions, col, row = [], 0, 0
+    for w in widths:
+        w = min(max(int(w), 1), LEGEND_PER_ROW)
+        if col + w > LEGEND_PER_ROW:
+            col, row = 0, row + 1
+        positions.append(
+            (
+                cx - h + (col + w / 2) * step,
+                cy - h * (1 + FRAME_MARGIN * (1 + LEGEND_ROW_STEP * row)),
+            )
+        )
+        col += w
+    return np.array(positions, dtype=np.float64).reshape(-1, 2), row + 1 if widths else 0
+
+
 def blueprint(
     with_camera: bool,
-    half_width: float | None = None,
+    frame: Frame | None = None,
     with_replays: bool = False,
     channels: int = 0,
+    legend_rows: int = LEGEND_ROWS,
 ) -> Any:
-    """The ``.rrd``'s layout: camera, workspace from above (framed on the square of
-    ``half_width`` m when given), and one time-series view per unit; with replays, also
-    the estimation error of the recorded and the replayed estimators. The currents' view is
-    taller by ``channels`` (its legend, a line per coil, must fit: a plot's legend is cut at
-    the plot's height, not scrolled): a share of the column per
-    :data:`LEGEND_LINES_PER_SHARE` coils, the other views one share each."""
+    """The ``.rrd``'s layout: camera, workspace from above (framed on ``frame``'s square
+    when given, with room for ``legend_rows`` rows of legend under it), and one time-series
+    view per unit; with replays, also the estimation error of the recorded and the replayed
+    estimators. The currents' view is taller by ``channels`` (its legend, a line per coil,
+    must fit: a plot's legend is cut at the plot's height, not scrolled): a share of the
+    column per :data:`LEGEND_LINES_PER_SHARE` coils, the other views one share each."""
     import rerun.blueprint as rrb
 
     views: list[Any] = []
     if with_camera:
         views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)"))
     bounds = None
-    if half_width is not None:
+    if frame is not None:
         # the view's own y points down (each entity is mirrored into it): the legend under
         # the square lies at +y here, with room for its names below the dots
-        r = half_width * (1 + FRAME_MARGIN)
-        bottom = half_width * (1 + (2.5 + (LEGEND_ROWS - 1) * LEGEND_ROW_STEP) * FRAME_MARGIN)
-        bounds = rrb.VisualBounds2D(x_range=[-r, r], y_range=[-r, bottom])
+        (cx, cy), h = frame
+        r = h * (1 + FRAME_MARGIN)
+        bottom = h * (1 + (2.5 + (max(legend_rows, 1) - 1) * LEGEND_ROW_STEP) * FRAME_MARGIN)
+        bounds = rrb.VisualBounds2D(x_range=[cx - r, cx + r], y_range=[-cy - r, -cy + bottom])
     views.append(
         rrb.Spatial2DView(
             origin="/workspace", name="workspace from above (m, y up)", visual_bounds=bounds
@@ -145,32 +194,6 @@ def blueprint(
     shares = [max(1.0, channels / LEGEND_LINES_PER_SHARE)] + [1.0] * (len(plots) - 1)
     series = rrb.Vertical(*plots, row_shares=shares)
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*views), series), collapse_panels=True)
-
-
-#: how far from its wall the critical boundary's name is put, m
-LABEL_OFFSET = 2.5e-3
-
-
-def label_anchor(line: FloatArray, others: list[FloatArray]) -> FloatArray:
-    """Where a wall's name goes: :data:`LABEL_OFFSET` from the middle (by length) of
-    ``line`` (n, 2), m, along its normal, on the side farther from the ``others`` walls: off
-    the channel between them (a label on the wall itself sits on the channel)."""
-    p = np.asarray(line, dtype=np.float64)
-    if len(p) < 2:
-        return p[0] if len(p) else np.zeros(2)
-    seg = np.diff(p, axis=0)
-    length = np.hypot(seg[:, 0], seg[:, 1])
-    along = np.concatenate([[0.0], np.cumsum(length)])
-    i = int(np.clip(np.searchsorted(along, along[-1] / 2) - 1, 0, len(seg) - 1))
-    f = (along[-1] / 2 - along[i]) / length[i] if length[i] > 0 else 0.0
-    middle = p[i] + f * seg[i]
-    normal = np.array([-seg[i, 1], seg[i, 0]]) / max(float(length[i]), 1e-12)
-    candidates = [middle + LABEL_OFFSET * normal, middle - LABEL_OFFSET * normal]
-    rest = np.concatenate([np.asarray(o, dtype=np.float64) for o in others]) if others else None
-    if rest is None or not len(rest):
-        return candidates[0]
-    nearest = [float(np.min(np.hypot(*(rest - c).T))) for c in candidates]
-    return candidates[int(np.argmax(nearest))]
 
 
 def recording_name(trial: dict[str, Any]) -> str:
@@ -204,10 +227,23 @@ class RerunLog:
             color = REPLAY_COLORS[i % len(REPLAY_COLORS)]
             self._colors[f"replay/{label}/estimated"] = color
             self._colors[f"replay/{label}/predicted"] = _lighter(color)
+        # the legend: a dot and a name per pose stream (one per replay), then the critical
+        # wall's name in its colour
+        critical = str(setup.trial.get("critical_boundary") or "")
+        legend = {
+            _legend_name(n): (c, 1)
+            for n, c in {**self._colors, "desired": STREAM_COLORS["desired"]}.items()
+            if not n.endswith("/predicted")
+        }
+        if critical in setup.boundaries:
+            legend[f"{critical} (critical wall)"] = (CRITICAL_COLOR, 2)
+        frame = view_frame(setup.workspace_half_width, setup.boundaries)
+        legend_at, legend_rows = (
+            legend_layout(frame, [w for _, w in legend.values()]) if frame else (None, 0)
+        )
         layout = blueprint(
-            self.camera is not None, setup.workspace_half_width, bool(replays),
-            len(setup.channel_names),
-        )  # fmt: skip
+            self.camera is not None, frame, bool(replays), len(setup.channel_names), legend_rows
+        )
         self._rec = rr.RecordingStream(
             "magrun", recording_id=setup.recording_id or None, send_properties=False
         )
@@ -241,44 +277,28 @@ class RerunLog:
                 rr.LineStrips2D([square], colors=[SQUARE_COLOR], radii=[LINE_RADIUS]),
                 static=True,
             )
-            # the views have no legend: one drawn under the square, a dot and a name per stream
-            colors = {**self._colors, "desired": STREAM_COLORS["desired"]}
-            names = [n for n in colors if not n.endswith("/predicted")]  # one per replay
-            col = np.arange(len(names)) % LEGEND_PER_ROW
-            row = np.arange(len(names)) // LEGEND_PER_ROW
-            xs = -h + (col + 0.5) * (2 * h / LEGEND_PER_ROW)
-            ys = -h * (1 + FRAME_MARGIN * (1 + LEGEND_ROW_STEP * row))
+        if legend_at is not None:
+            # the views have no legend: one drawn under the frame, a dot and a name each
             rec.log(
                 "/workspace/legend",
                 rr.Points2D(
-                    np.column_stack([xs, ys]),
-                    colors=[colors[n] for n in names], radii=[POINT_RADIUS],
-                    labels=[_legend_name(n) for n in names], show_labels=True,
+                    legend_at, colors=[c for c, _ in legend.values()], radii=[POINT_RADIUS],
+                    labels=list(legend), show_labels=True,
                 ),
                 static=True,
             )  # fmt: skip
-        critical = str(setup.trial.get("critical_boundary") or "")
         for name, line in setup.boundaries.items():
-            is_critical = name == critical  # the wall not to touch: its own colour, named
+            is_critical = name == critical  # the wall not to touch: its own colour
+            label = f"{name} (critical wall)" if is_critical else name
             rec.log(
                 f"/workspace/boundaries/{name}",
                 rr.LineStrips2D(
                     [line], colors=[CRITICAL_COLOR if is_critical else BOUNDARY_COLOR],
-                    radii=[PATH_RADIUS], labels=[f"{name} (critical)" if is_critical else name],
+                    radii=[PATH_RADIUS], labels=[label],
                     show_labels=False,
                 ),
                 static=True,
             )  # fmt: skip
-            if is_critical:  # named beside the wall, away from the channel the robot is in
-                others = [b for n, b in setup.boundaries.items() if n != name]
-                rec.log(
-                    f"/workspace/boundaries/{name}/label",
-                    rr.Points2D(
-                        [label_anchor(line, others)], colors=[CRITICAL_COLOR],
-                        radii=[LINE_RADIUS], labels=[f"{name} (critical)"], show_labels=True,
-                    ),
-                    static=True,
-                )  # fmt: skip
         if setup.reference is not None and len(setup.reference):
             ref = np.asarray(setup.reference)[:, :2]
             desired = STREAM_COLORS["desired"]
