@@ -223,8 +223,11 @@ def validate_data(
             if by is not None:
                 problems.append(f"--set {by[0]}: {by[1]}: {_message(model, err)}")
                 continue
-            line, shown = _locate(root, loc)
-            where = f"{source}:{line}" if root is not None else source
+            if root is not None:
+                line, shown = _locate(root, loc)
+                where = f"{source}:{line}"
+            else:  # a JSON document (a recording's protocol): no lines, the same names
+                where, shown = source, _as_written(data, loc)
             problems.append(f"{where}: {_field_name(shown)}: {_message(model, err)}")
         if len(errors) > MAX_PROBLEMS:
             problems.append(f"{source}: and {len(errors) - MAX_PROBLEMS:,} more problems")

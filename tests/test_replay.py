@@ -402,9 +402,9 @@ def test_a_calibration_recorded_elsewhere_is_asked_for(coils, tmp_path: Path) ->
 
 
 def test_a_phantom_recorded_elsewhere_is_asked_for_and_then_replays(tmp_path: Path) -> None:
-    """The same for a phantom, whose error names the setting with the workspace kind between
-    its parts (``workspace.spine_phantom.phantom``): replay says ``--set workspace.phantom``,
-    and with it the recording replays."""
+    """The same for a phantom, a setting of one kind of workspace (a union's member): the
+    error names it as written, ``workspace.phantom`` (not with the union's tag between its
+    parts), replay says ``--set workspace.phantom``, and with it the recording replays."""
     import shutil
 
     shipped = Path(__file__).parents[1] / "protocols" / "phantoms" / "spine_l3l4.yaml"
@@ -422,6 +422,8 @@ def test_a_phantom_recorded_elsewhere_is_asked_for_and_then_replays(tmp_path: Pa
     refused = CliRunner().invoke(cli, ["replay", str(path), "--out", str(out)])
     assert refused.exit_code == 2, refused.output
     assert "--set workspace.phantom=PATH" in refused.output
+    assert "(recorded protocol): workspace.phantom:" in refused.output
+    assert "spine_phantom" not in refused.output.replace("kind: spine_phantom", "")
     assert not out.exists()
     given = ["replay", str(path), "--out", str(out), "--set", f"workspace.phantom={moved}"]
     replayed = CliRunner().invoke(cli, given)
@@ -432,8 +434,6 @@ def test_a_phantom_recorded_elsewhere_is_asked_for_and_then_replays(tmp_path: Pa
 @pytest.mark.parametrize(
     ("message", "key", "named"),
     [
-        ("workspace.spine_phantom.phantom: cannot read", "workspace.phantom", True),
-        ("workspace.phantom.phantom: cannot read", "workspace.phantom", True),
         ("workspace.phantom: cannot read", "workspace.phantom", True),
         ("controller.coil_gains: cannot read", "controller.coil_gains", True),
         ("simulation.plant_seed: too large", "simulation.plant", False),

@@ -61,11 +61,9 @@ def trial_of(rec: RecordedTrial, overrides: tuple[str, ...] = ()) -> Trial:
 
 
 def _names_setting(message: str, key: str) -> bool:
-    """Whether an error ``message`` names the dotted setting ``key``, also where the error's
-    location has a union's tag between its parts (``workspace.spine_phantom.phantom`` for
-    ``workspace.phantom``)."""
-    pattern = r"\.(?:\w+\.)?".join(re.escape(part) for part in key.split("."))
-    return re.search(rf"(?<![\w.]){pattern}(?![\w])", message) is not None
+    """Whether an error ``message`` names the dotted setting ``key`` (as written: the
+    validation's errors drop a union's tags, :func:`magrun.yamlio.validate_data`)."""
+    return re.search(rf"(?<![\w.]){re.escape(key)}(?![\w])", message) is not None
 
 
 #: protocol settings that name files, as replay's errors hint at them
