@@ -38,6 +38,7 @@ class FakeRig:
         self.lines: list[str] = []
         self._server = socket.create_server(("127.0.0.1", 0))
         self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._stopped = threading.Event()
 
     @property
     def url(self) -> str:
@@ -49,15 +50,22 @@ class FakeRig:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._server.close()
+        # closing a listening socket does not wake a thread blocked in accept() on Linux:
+        # the server polls, and stops at its next poll
+        self._stopped.set()
         self._thread.join(5)
+        self._server.close()
 
     def _serve(self) -> None:
-        while True:
+        self._server.settimeout(0.05)
+        while not self._stopped.is_set():
             try:
                 conn, _ = self._server.accept()
+            except TimeoutError:
+                continue
             except OSError:
                 return  # closed
+            conn.settimeout(None)
             with conn, conn.makefile("rw", encoding="ascii", newline="\n") as f:
                 for line in f:
                     line = line.strip()
