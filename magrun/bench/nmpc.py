@@ -65,12 +65,20 @@ def bench_nmpc(
     variants: tuple[str, ...] = tuple(NMPC_VARIANTS),
     progress: Callable[[str], None] | None = None,
     systems: tuple[str | Path, ...] = (),
+    protocols: tuple[Any, ...] = (),
 ) -> dict[str, Any]:
     """Per-solve times and closed-loop tracking of the NMPC variants on one core.
 
     ``systems``: coil-system folders on which the proposed method runs too, in the same
     run (variant ``proposed@<folder name>``, with its channel count under ``coils``): the
     solve time for N channels beside the paper rig's 8.
+
+    ``protocols``: loaded protocols (:class:`~magrun.protocol.Protocol`) whose proposed
+    method runs too, in the same run (variant ``proposed@<protocol name>``): one trial
+    (seed 0) under the protocol's fixed conditions, its feedback, plant and controller as
+    declared, the first ``ticks`` ticks or its whole duration: a phantom's ticks (corridor,
+    Kalman filter) beside the S's. ``feedback_vs_s`` is its feedback phase's median over
+    the S's (variant ``proposed``, in the same run).
 
     Each variant runs the paper's S-trajectory (43 mm, 3 mm/s; the first ``ticks`` ticks, or
     all of it plus 1 s of hold) closed loop on the simulated rig (seed 0) with perfect
@@ -100,6 +108,10 @@ def bench_nmpc(
     runs: list[tuple[str, str, str, Any]] = [
         (name, *NMPC_VARIANTS[name], protocol) for name in variants
     ]
+    for proto in protocols:
+        if ticks is not None:
+            proto = proto.model_copy(update={"duration_s": (ticks - 1) / proto.controller.rate_hz})
+        runs.append((f"proposed@{proto.name}", "proposed", "rti", proto))
     for folder in systems:
         coils = load_system(folder).coils
         runs.append(
@@ -120,6 +132,7 @@ def bench_nmpc(
             prepare = np.array([s.prepare_time for s in log.status[1:]])
             solve = feedback + prepare
             split = bool(np.any(prepare > 0))
+            backend = getattr(controller.planner, "backend", None)
             out["variants"][name] = {
                 "coils": controller.n_channels,
                 "robot": proto.robot,
@@ -135,14 +148,10 @@ def bench_nmpc(
                 "median_iterations": float(np.median([s.iterations for s in log.status[1:]])),
                 "failed_solves": sum(not s.success for s in log.status),
                 # RTI: QPs HPIPM's fast preset failed and the robust one solved
-                "robust_retries": getattr(
-                    getattr(controller.planner, "backend", None), "robust_retries", 0
-                ),
+                "robust_retries": getattr(backend, "robust_retries", 0),
                 # RTI: prepared ticks whose measurement was too far from the prediction for
                 # the linearisation there (NMPCConfig.max_embedding_defect), linearised afresh
-                "relinearised_ticks": getattr(
-                    getattr(controller.planner, "backend", None), "relinearised", 0
-                ),
+                "relinearised_ticks": getattr(backend, "relinearised", 0),
                 "achievable_rate_hz": float(1.0 / np.median(solve)),
                 "rms_position_mm": log.rms_position_mm,
                 "rms_orientation_deg": log.rms_orientation_deg,
@@ -154,6 +163,10 @@ def bench_nmpc(
                     "p99_ms": ms(feedback, 99),
                     "max_ms": float(np.max(feedback) * 1e3),
                     "prepared_ticks": int(np.sum(prepare > 0)),
+                    # ticks whose feedback phase used their preparation (the others, their
+                    # parameters changed since, e.g. the reference by a late frame's
+                    # integral action, linearised again at the measured start)
+                    "embedded_ticks": int(getattr(backend, "embedded", 0)),
                     "prepare_median_ms": ms(prepare[prepare > 0], 50),
                 }
     v = out["variants"]
@@ -165,6 +178,10 @@ def bench_nmpc(
         if "feedback" in fast:
             out["feedback_speedup_vs_ipopt"] = ref["median_ms"] / fast["feedback"]["median_ms"]
             out["feedback_p99_speedup_vs_ipopt"] = ref["p99_ms"] / fast["feedback"]["p99_ms"]
+    s_feedback = v.get("proposed", {}).get("feedback", {}).get("median_ms")
+    for name, r in v.items():
+        if name.startswith("proposed@") and s_feedback and "feedback" in r:
+            r["feedback_vs_s"] = r["feedback"]["median_ms"] / s_feedback
     if "b5_lut" in v and "b5_lut_ipopt" in v:
         out["b5_speedup_vs_ipopt"] = v["b5_lut_ipopt"]["median_ms"] / v["b5_lut"]["median_ms"]
     return out
@@ -184,7 +201,9 @@ def summary(out: dict[str, Any]) -> list[str]:
             f = r["feedback"]
             lines.append(
                 f"{'':>25}  feedback phase: median {f['median_ms']:.2f} ms,"
-                f" p99 {f['p99_ms']:.2f} ms ({f['prepared_ticks']} prepared ticks)"
+                f" p99 {f['p99_ms']:.2f} ms ({f['prepared_ticks']} prepared ticks,"
+                f" {f['embedded_ticks']} used)"
+                + (f", {r['feedback_vs_s']:.2f}x the S's" if "feedback_vs_s" in r else "")
             )
     for key in (
         "speedup_vs_ipopt", "p99_speedup_vs_ipopt", "feedback_speedup_vs_ipopt",

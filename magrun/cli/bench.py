@@ -39,10 +39,18 @@ def bench() -> None:
     help="A coil-system folder: run the proposed method on it too (repeatable), on the S "
     "scaled to its workspace with the micro_magnet robot; its channel count is reported.",
 )  # fmt: skip
+@click.option(
+    "--protocol", "protocol_files", multiple=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="A protocol file: run its proposed method too (repeatable), one trial under its "
+    "fixed conditions (feedback, plant, phantom as declared), e.g. protocols/spine.yaml for "
+    "a phantom's ticks beside the S's.",
+)  # fmt: skip
 @JSON_OPTION
 def bench_nmpc(
-    ticks: int | None, variants: tuple[str, ...], systems: tuple[Path, ...], as_json: bool
-) -> None:
+    ticks: int | None, variants: tuple[str, ...], systems: tuple[Path, ...],
+    protocol_files: tuple[Path, ...], as_json: bool,
+) -> None:  # fmt: skip
     """NMPC solve times and closed-loop tracking, fast solver vs the IPOPT reference.
 
     Each variant (proposed: Gauss-Newton RTI + HPIPM on the Zernike model;
@@ -53,10 +61,12 @@ def bench_nmpc(
     """
     from magrun.bench import nmpc
 
+    protocols = load_protocols(protocol_files)
     chosen = variants or tuple(nmpc.NMPC_VARIANTS)
     out = nmpc.bench_nmpc(
-        ticks, chosen, progress=None if as_json else say("running"), systems=systems
-    )
+        ticks, chosen, progress=None if as_json else say("running"), systems=systems,
+        protocols=tuple(protocols),
+    )  # fmt: skip
     _emit(out, nmpc.summary(out), as_json)
 
 

@@ -79,6 +79,7 @@ class RTISolver(Backend):
                                    g.shape[0], gN.shape[0])  # fmt: skip
         self.robust_retries = 0
         self.relinearised = 0  # prepared ticks linearised again at the measurement
+        self.embedded = 0  # ticks whose feedback phase used the preparation
         self.reset()
         if self.kernel is not None:
             return
@@ -277,6 +278,7 @@ class RTISolver(Backend):
                 k.shift()
             budget = cfg.iterations
         self._aligned = True
+        self.embedded += ready
         iterations, corrections = 0, cfg.corrective_iterations
         while iterations < budget:
             embedded = ready
