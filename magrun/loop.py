@@ -248,9 +248,12 @@ def run_trial(
         if on_tick is not None:
             on_tick(tick)
         prediction = out.predicted
-        # the next tick's work that needs no measurement, while the plant runs on
-        controller.prepare(plan.pose(obs.t + period + lead + offsets))
         rest = period - charged
+        # the next tick's work that needs no measurement, while the plant runs on; its time
+        # as a simulated rig's clock will read it (it adds each advance: the same sum, in the
+        # same order), so that the next tick's window is the prepared one to the bit
+        t_next = obs.t + charged + rest if charged > 0 and rest > 0 else obs.t + period
+        controller.prepare(plan.pose(t_next + lead + offsets))
         if rest > 0:
             rig.advance(rest)
         t = obs.t + period

@@ -241,6 +241,29 @@ def test_bench_nmpc_reports_the_feedback_phase(runner: CliRunner) -> None:
     assert f["prepare_median_ms"] > 0
 
 
+def test_bench_nmpc_runs_a_protocols_ticks_beside_the_s(runner: CliRunner) -> None:
+    """``--protocol``: the protocol's proposed method, one trial under its own conditions
+    (the spine: phantom, 3 Hz frames, Kalman filter), as ``proposed@<name>``, with its
+    feedback phase over the S's from the same run; a protocol with errors exits 2."""
+    spine = Path(__file__).parents[1] / "protocols" / "spine.yaml"
+    args = ["bench", "nmpc", "--ticks", "30", "--variant", "proposed", "--protocol", str(spine)]
+    result = runner.invoke(cli, [*args, "--json"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert list(doc["variants"]) == ["proposed", "proposed@spine"]
+    s, r = doc["variants"]["proposed"], doc["variants"]["proposed@spine"]
+    assert r["robot"] == "drug_delivery"
+    assert r["ticks"] == 30
+    assert r["failed_solves"] == 0
+    f = r["feedback"]
+    assert f["prepared_ticks"] == 29  # every tick after the first (cold) one
+    assert 0 < f["embedded_ticks"] <= f["prepared_ticks"]
+    assert r["feedback_vs_s"] == pytest.approx(f["median_ms"] / s["feedback"]["median_ms"])
+    bad = runner.invoke(cli, [*args, "--json", "--protocol", str(Path(__file__))])
+    assert bad.exit_code == 2, bad.output
+    assert "Traceback" not in bad.output
+
+
 def test_track_with_camera_and_fluoroscopy_json(runner: CliRunner) -> None:
     """UNet tracking on rendered frames, 7.5 Hz, σ 2 mm: 16 measurements in 2 s, none lost."""
     args = ["track", "baseline2", "--duration", "2", "--camera", "--rate-hz", "7.5"]

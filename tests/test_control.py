@@ -440,3 +440,51 @@ def test_the_linear_mpcs_limits_bound_the_wrench_without_changing_its_cost(
     assert_allclose(wrenches["wide", "near"], wrenches["paper", "near"], rtol=1e-6, atol=1e-12)
     assert abs(wrenches["paper", "far"][0]) == pytest.approx(paper.max_force, rel=1e-6)
     assert paper.max_force * 1.5 < abs(wrenches["wide", "far"][0]) <= wide.max_force * (1 + 1e-9)
+
+
+class _Watching(_ProportionalPlanner):
+    """A linear planner that keeps the covariances it is shown and expects."""
+
+    def __init__(self) -> None:
+        self.observed: list[np.ndarray | None] = []
+        self.expected: list[np.ndarray | None] = []
+
+    def observe_uncertainty(self, covariance) -> None:
+        self.observed.append(None if covariance is None else np.array(covariance))
+
+    def expect_uncertainty(self, covariance) -> None:
+        self.expected.append(None if covariance is None else np.array(covariance))
+
+
+@pytest.mark.parametrize("kind", ["kalman", "linearised"])
+def test_the_planner_sees_the_covariance_before_the_ticks_frame_known_a_tick_ahead(
+    kind: str,
+) -> None:
+    """The corridor's margins come from the estimate's covariance before the tick's frame:
+    the filter's prediction, which a tick without a frame ends with and which a frame's
+    tick shrinks. So the covariance the planner is told to expect at the preparation is
+    the one the next tick shows it, bit for bit, frame or not; and it is the filter's
+    covariance after an update without a measurement."""
+    planner = _Watching()
+    c = Controller("t", _estimator(kind), planner, 0.04, 30.0, 1e4, 3, velocity="model")
+    c.reset(np.zeros(3))
+    rng = np.random.default_rng(5)
+    ref = np.zeros((3, 3))
+    frames = 0
+    for k in range(24):
+        z = rng.normal(0.0, 5e-4, 3) if k % 4 == 1 else None
+        frames += z is not None
+        before = c.estimator.snapshot()
+        prior = None if k == 0 else c.estimator.predicted_covariance(c._prediction, c._jacobian)
+        c.estimator.restore(before)
+        c.step(z, ref)
+        if k == 0:  # no prediction yet: the estimator's own
+            np.testing.assert_array_equal(planner.observed[0], c.estimator.covariance)
+        else:
+            np.testing.assert_array_equal(planner.observed[-1], prior)
+            np.testing.assert_array_equal(planner.observed[-1], planner.expected[-1])
+            if z is not None:  # the frame shrank the filter's own, not what the planner saw
+                assert np.trace(c.estimator.covariance[:2, :2]) < np.trace(prior[:2, :2])
+        c.prepare(ref)
+    assert frames == 6
+    assert len(planner.expected) == 24

@@ -561,3 +561,47 @@ def test_strong_tracking_guards_a_linearised_filter_whose_model_is_wrong() -> No
     _, kept, faded = run(True, True)
     assert faded == 1.0
     assert_allclose(np.array(kept), np.array(plain), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        KalmanConfig(),
+        KalmanConfig(heading_bias=math.radians(0.5), mobility=0.003),
+        KalmanConfig(mobility=0.003, linearised=True),
+    ],
+    ids=["plain", "bias-and-mobility", "linearised"],
+)
+def test_the_predicted_covariance_is_the_one_a_tick_without_a_frame_leaves(
+    config: KalmanConfig,
+) -> None:
+    """What the NMPC prepares a phantom's tick with: the covariance ``update`` without a
+    measurement leaves, from the same prediction and Jacobian, bit for bit, and the filter
+    left as it was (pose and covariance bit for bit); with F = I it grows between frames
+    (the linearised filter's Jacobian may shrink it)."""
+    rng = np.random.default_rng(3)
+    kf = KalmanPoseFilter(config)
+    kf.reset(np.array([1e-3, -2e-3, 0.3]))
+    pose = kf.pose
+    for k in range(12):  # a few ticks, a frame every fourth, to leave a general P
+        pose = pose + np.array([0.1e-3, 0.05e-3, 0.01])
+        z = pose + rng.normal(0, 1e-3, 3) if k % 4 == 0 else None
+        kf.update(z, pose, np.eye(3) + 0.01 * rng.normal(size=(3, 3)))
+    prediction = pose + np.array([0.1e-3, -0.1e-3, 0.02])
+    jacobian = np.eye(3) + 0.02 * rng.normal(size=(3, 3))
+    before_pose, before_P = kf.pose, kf.covariance
+    predicted = kf.predicted_covariance(prediction, jacobian)
+    assert predicted is not None
+    assert np.array_equal(kf.pose, before_pose)
+    assert np.array_equal(kf.covariance, before_P)
+    kf.update(None, prediction, jacobian)
+    assert np.array_equal(predicted, kf.covariance)
+    if not config.linearised:
+        assert np.all(np.diag(predicted) > np.diag(before_P))
+
+
+def test_an_estimator_without_a_covariance_predicts_none() -> None:
+    """The baselines' estimator keeps no distribution: nothing to prepare a corridor with."""
+    est = MeasurementOrPrediction()
+    est.reset(np.zeros(3))
+    assert est.predicted_covariance(np.array([1e-3, 0.0, 0.1])) is None

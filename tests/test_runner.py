@@ -484,6 +484,34 @@ def test_declared_latency_ignores_the_clock(latency_ticks: float) -> None:
     assert len(log.t) == math.floor(0.5 / period + 1e-9) + 1
 
 
+@pytest.mark.parametrize("latency_ticks", [0.0, 0.125, 1.5])
+def test_the_window_prepared_is_the_next_ticks_to_the_bit(latency_ticks: float) -> None:
+    """The loop prepares the next tick with the reference window at the time the rig's
+    clock will then read, to the bit, whatever latency is declared (the plant advanced in
+    two parts in a tick: a window a rounding apart would not use the preparation)."""
+    controller = make_controller("baseline3")
+    prepared: list[np.ndarray] = []
+    planned: list[np.ndarray] = []
+    step, prepare = controller.step, controller.prepare
+
+    def stepping(z, window, age=0.0):  # type: ignore[no-untyped-def]
+        planned.append(np.array(window))
+        return step(z, window, age)
+
+    def preparing(window) -> None:  # type: ignore[no-untyped-def]
+        prepared.append(np.array(window))
+        prepare(window)
+
+    controller.step, controller.prepare = stepping, preparing  # type: ignore[method-assign]
+    latency = latency_ticks * controller.dt
+    log = run_trial(
+        controller, SimRig.default(seed=0), s_trajectory(), duration=2.0, latency=latency
+    )
+    assert len(planned) == len(log.t) > 30
+    for before, after in zip(prepared[:-1], planned[1:], strict=True):
+        np.testing.assert_array_equal(after, before)
+
+
 def test_without_charging_the_plant_waits_for_the_controller() -> None:
     controller = make_controller("baseline3")
     rig = _LoggingRig()

@@ -151,6 +151,20 @@ class Estimator(ABC):
         """The estimate's covariance (3×3, SI), where the estimator keeps one."""
         return None
 
+    def predicted_covariance(
+        self, prediction: FloatArray | None, jacobian: FloatArray | None = None
+    ) -> FloatArray | None:
+        """The covariance (3×3) that :meth:`update` without a measurement, from this
+        ``prediction`` and ``jacobian``, would leave, the estimator left as it is; None
+        where it keeps none."""
+        if self.covariance is None:
+            return None
+        before = self.snapshot()
+        self.update(None, prediction, jacobian)
+        covariance = self.covariance
+        self.restore(before)
+        return covariance
+
     def constrain(self, pose: FloatArray) -> None:  # noqa: B027 (optional hook)
         """The estimate was moved to ``pose`` (into the free space): start from there."""
 
@@ -189,6 +203,11 @@ class Planner(ABC):
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
         """The estimate's covariance (3×3) at this tick, before :meth:`plan`; planners that
         use it (the NMPC's corridor) override this."""
+
+    def expect_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
+        """The covariance (3×3) the estimate will have at the next tick if no measurement
+        arrives (:meth:`Estimator.predicted_covariance`), before :meth:`prepare`; planners
+        whose preparation depends on it (the NMPC's corridor) override this."""
 
     def prepare(  # noqa: B027 (optional hook)
         self, state: FloatArray, reference: FloatArray, previous: FloatArray
@@ -264,6 +283,7 @@ class Controller:
         self._previous_estimate = p
         self._prediction: FloatArray | None = None
         self._jacobian: FloatArray | None = None
+        self._prior: FloatArray | None = None  # the coming tick's covariance before its frame
         #: the state and currents of the last prediction, until its Jacobian is computed
         self._linearise_at: tuple[FloatArray, FloatArray] | None = None
         self._predicted_state: FloatArray | None = None
@@ -419,6 +439,7 @@ class Controller:
         state: FloatArray,
     ) -> None:  # fmt: skip
         self._jacobian = None
+        self._prior = None
         uses = self.estimator.uses_jacobian
         self._linearise_at = (state.copy(), currents.copy()) if uses else None
         self._previous_estimate = estimate
@@ -436,7 +457,20 @@ class Controller:
             state = self._predicted_state
             if self.latency > 0:  # the next plan starts when its currents apply
                 state = self._ahead(state)
+            # the next tick's covariance before its frame, as step gives the planner
+            self.planner.expect_uncertainty(self._prior_covariance())
             self.planner.prepare(state, self._offset(reference), self.currents)
+
+    def _prior_covariance(self) -> FloatArray | None:
+        """The covariance the estimate has at the coming tick before its frame (the filter's
+        prediction from this tick; :meth:`Estimator.predicted_covariance`), as the planner
+        sees it (module doc); the estimator's own before its first prediction."""
+        if self._prediction is None:
+            return self.estimator.covariance
+        if self._prior is None:
+            self._linearise()
+            self._prior = self.estimator.predicted_covariance(self._prediction, self._jacobian)
+        return self._prior
 
     def _offset(self, reference: FloatArray) -> FloatArray:
         """``reference`` with its positions moved by the integral action's offset."""
@@ -489,10 +523,11 @@ class Controller:
     ) -> ControlOutput:
         """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived;
         ``age`` (s) how long before this tick the measurement's frame was taken (module doc)."""
+        prior = self._prior_covariance()  # before this tick's frame (module doc)
         state = self._begin(measurement, age)
         estimate = state[:3].copy()
         start = self._ahead(state)  # where the robot is when these currents apply
-        self.planner.observe_uncertainty(self.estimator.covariance)
+        self.planner.observe_uncertainty(prior)
         plan = self.planner.plan(start, self._offset(reference), self.currents)
         fault = ""
         if not np.all(np.isfinite(plan.currents)):

@@ -71,14 +71,35 @@ class NMPC(Planner):
     def reset(self) -> None:
         self.backend.reset()
         self.position_covariance = None
+        self._expected_covariance: FloatArray | None = None
+        #: the corridor's stages 1 … N as prepared: (reference, covariance, half-planes)
+        self._ahead: tuple[FloatArray, FloatArray | None, FloatArray] | None = None
         self._prepare_time = 0.0
 
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:
-        """The estimate's covariance (3×3: x, y, θ), or None: tightens the corridor."""
+        """The estimate's covariance (3×3: x, y, θ) before this tick's frame (the filter's
+        prediction), or None: tightens the corridor."""
         self.position_covariance = None if covariance is None else np.asarray(covariance)[:2, :2]
 
-    def corridor(self, state: FloatArray, reference: FloatArray) -> FloatArray:
-        """The half-planes of each stage 0 … N, shape (N+1, N_PLANES, 3), in mm (scaled)."""
+    def expect_uncertainty(self, covariance: FloatArray | None) -> None:
+        """The next tick's :meth:`observe_uncertainty` (3×3), known a tick ahead: the
+        prepared corridor's."""
+        self._expected_covariance = (
+            None if covariance is None else np.asarray(covariance)[:2, :2].copy()
+        )
+
+    def corridor(
+        self, state: FloatArray, reference: FloatArray, covariance: FloatArray | None = None
+    ) -> FloatArray:
+        """The half-planes of each stage 0 … N, shape (N+1, N_PLANES, 3), in mm (scaled); the
+        chance margins from ``covariance`` (2×2), else from :attr:`position_covariance`."""
+        cov = self.position_covariance if covariance is None else covariance
+        return self._with_start(self._corridor_ahead(reference, cov), state, cov)
+
+    def _corridor_ahead(self, reference: FloatArray, cov: FloatArray | None) -> FloatArray:
+        """:meth:`corridor`'s stages 1 … N (SI; stage 0 left inactive), which do not depend
+        on the start: the half-planes at the last plan's states (the reference's before a
+        plan), margins from ``cov``."""
         N = self.config.horizon
         planes = np.empty((N + 1, N_PLANES, 3))
         planes[:] = INACTIVE
@@ -87,14 +108,28 @@ class NMPC(Planner):
             return planes
         plan = self.backend.states_plan()  # X_1 … X_N of the last plan, scaled
         if plan is None:
-            positions = reference[:, :2]
+            positions = reference[1:, :2]
         else:
-            positions = np.vstack([state[:2], plan[1:, :2] * 1e-3, plan[-1:, :2] * 1e-3])
+            positions = np.vstack([plan[1:, :2] * 1e-3, plan[-1:, :2] * 1e-3])
         cfg = self.config
-        planes[:, 0] = fs.corridor(
-            positions, self.position_covariance, cfg.corridor_margin, cfg.corridor_sigmas,
-            cfg.corridor_share,
-        )  # fmt: skip
+        planes[1:, 0] = fs.corridor(
+            positions, cov, cfg.corridor_margin, cfg.corridor_sigmas, cfg.corridor_share
+        )
+        return planes
+
+    def _with_start(
+        self, ahead: FloatArray, state: FloatArray, cov: FloatArray | None
+    ) -> FloatArray:
+        """The stages 1 … N of ``ahead`` (SI) with stage 0's half-plane, at the start
+        ``state``, and the start's lead-out (module doc, "Corridor"): in mm (scaled)."""
+        planes = ahead.copy()
+        fs = self.free_space
+        if fs is None:
+            return planes
+        cfg = self.config
+        planes[0, 0] = fs.corridor(
+            state[None, :2], cov, cfg.corridor_margin, cfg.corridor_sigmas, cfg.corridor_share
+        )[0]
         if cfg.corridor_recovery > 0:
             # a start already inside the margin (an estimate that a frame moved toward the
             # wall) is led back out at corridor_recovery, not within one stage (module doc)
@@ -102,7 +137,7 @@ class NMPC(Planner):
             axis = np.array([math.cos(state[2]), math.sin(state[2])]) * fs.half_axis
             inside = c - min(n @ (state[:2] + axis), n @ (state[:2] - axis))
             if inside > 0:
-                k = np.arange(N + 1)
+                k = np.arange(len(planes))
                 planes[:, 0, 2] -= np.maximum(0.0, inside - k * cfg.dt * cfg.corridor_recovery)
         planes[:, :, 2] /= 1e-3  # c in mm, as the scaled positions
         return planes
@@ -115,9 +150,11 @@ class NMPC(Planner):
         return np.asarray(self._predict(X, u), dtype=np.float64).ravel() * STATE_SCALE
 
     def _start(
-        self, state: FloatArray, reference: FloatArray, previous: FloatArray
-    ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """(x0 SI, its position in the workspace box; u_prev scaled; stage parameters)."""
+        self, state: FloatArray, reference: FloatArray, previous: FloatArray,
+        covariance: FloatArray | None = None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
+        """(x0 SI, its position in the workspace box; u_prev scaled; stage parameters, the
+        corridor's margins from ``covariance`` where given)."""
         N = self.config.horizon
         x0 = np.asarray(state, dtype=np.float64).copy()
         x0[:2] = np.clip(x0[:2], -self.position_bound, self.position_bound)
@@ -125,7 +162,16 @@ class NMPC(Planner):
         if ref.shape != (N + 1, 3):
             raise ValueError(f"reference must have shape ({N + 1}, 3), got {ref.shape}")
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
-        return x0, u_prev, self.problem.stage_parameters(ref, self.corridor(x0, ref))
+        cov = self.position_covariance if covariance is None else covariance
+        ahead, self._ahead = self._ahead, None
+        if ahead is None or not (
+            np.array_equal(ahead[0], ref) and _same(ahead[1], cov)
+        ):  # not prepared for this reference and covariance (the plan is the same)
+            ahead = (ref, cov, self._corridor_ahead(ref, cov))
+        if covariance is not None:  # a preparation: kept for the tick it prepares
+            self._ahead = (ref.copy(), None if cov is None else cov.copy(), ahead[2])
+        planes = self._with_start(ahead[2], x0, cov)
+        return x0, u_prev, self.problem.stage_parameters(ref, planes)
 
     def _braking(self, x0: FloatArray, previous: FloatArray) -> Iterate:
         """A plan (S, V), scaled as the backends' iterates, that brakes: from ``x0`` (SI) the
@@ -152,11 +198,17 @@ class NMPC(Planner):
         solves it (the feedback phase), where its parameters are the prepared ones: the
         same reference and previous currents, and corridor margins from the same
         covariance. With a phantom's corridor and a Kalman filter the margins follow the
-        next estimate's covariance, so nothing is prepared and every tick iterates in full."""
+        estimate's covariance before the tick's frame, the filter's prediction, which is
+        known a tick ahead (:meth:`expect_uncertainty`): a frame's tick is prepared as any
+        other. A tick whose start the corridor leads out of its margin (the lead-out follows
+        the measured start) iterates in full."""
+        covariance = None
         if self.problem.has_corridor and self.position_covariance is not None:
-            return  # the margins follow the next estimate's covariance: nothing to prepare
+            covariance = self._expected_covariance
+            if covariance is None:
+                return  # the margins' covariance is not known ahead
         t0 = time.perf_counter()
-        x0, u_prev, params = self._start(state, reference, previous)
+        x0, u_prev, params = self._start(state, reference, previous, covariance)
         done = self.backend.prepare(np.concatenate([x0 / STATE_SCALE, u_prev]), params)
         self._prepare_time = time.perf_counter() - t0 if done else 0.0
 
@@ -194,3 +246,8 @@ class NMPC(Planner):
 
 # --------------------------------------------------------------------------------------------
 # the problem, shared by both solvers
+
+
+def _same(a: FloatArray | None, b: FloatArray | None) -> bool:
+    """Whether two covariances (or Nones) are the same, bit for bit."""
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
