@@ -87,11 +87,14 @@ phantom), each stage k ≥ 1 has a half-plane from the critical boundary's point
 previous plan's state there (the reference on a trial's first tick;
 :meth:`FreeSpace.corridor`). Both end points of the body's axis must lie on the free side,
 the body's radius plus a margin away: ``corridor_margin`` + κ σ_n, where σ_n is the
-estimate's standard deviation along the boundary's normal (the Kalman filter's covariance,
-κ = ``corridor_sigmas``), at most ``corridor_share`` of the channel's free width: a chance
-constraint, tightened by what the controller does not know. So the body's ends, and with them
-its heading, are kept off the critical wall. The other boundaries get no constraint: contact
-with them is allowed.
+estimate's standard deviation along the boundary's normal (κ = ``corridor_sigmas``), at
+most ``corridor_share`` of the channel's free width: a chance constraint, tightened by what
+the controller does not know. The covariance is the Kalman filter's before the tick's frame
+(its prediction from the last tick): the same with a frame or without, so known a tick
+ahead and the tick's corridor prepared with the rest of it (:meth:`NMPC.prepare`); a
+frame's tick keeps the wider margin of the covariance the frame is about to shrink. So the
+body's ends, and with them its heading, are kept off the critical wall. The other
+boundaries get no constraint: contact with them is allowed.
 
 A frame can move the estimate into the margin (a 2 mm σ frame moves it by 0.5 mm on the bench
 spine). The plan is then not asked to leave within one stage, which only a large lateral
