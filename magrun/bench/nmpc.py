@@ -163,9 +163,9 @@ def bench_nmpc(
                     "p99_ms": ms(feedback, 99),
                     "max_ms": float(np.max(feedback) * 1e3),
                     "prepared_ticks": int(np.sum(prepare > 0)),
-                    # ticks whose feedback phase used their preparation (the others, their
-                    # parameters changed since, e.g. the reference by a late frame's
-                    # integral action, linearised again at the measured start)
+                    # ticks whose feedback phase used their preparation (the others, whose
+                    # parameters changed since, e.g. a start the corridor leads out of its
+                    # margin, linearised again at the measured start)
                     "embedded_ticks": int(getattr(backend, "embedded", 0)),
                     "prepare_median_ms": ms(prepare[prepare > 0], 50),
                 }

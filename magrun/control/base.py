@@ -201,13 +201,15 @@ class Planner(ABC):
         """The planner's model of the state one tick after applying ``currents``."""
 
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
-        """The estimate's covariance (3×3) at this tick, before :meth:`plan`; planners that
-        use it (the NMPC's corridor) override this."""
+        """The estimate's covariance (3×3) at this tick before its frame (the filter's
+        prediction), before :meth:`plan`; planners that use it (the NMPC's corridor)
+        override this."""
 
     def expect_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
-        """The covariance (3×3) the estimate will have at the next tick if no measurement
-        arrives (:meth:`Estimator.predicted_covariance`), before :meth:`prepare`; planners
-        whose preparation depends on it (the NMPC's corridor) override this."""
+        """What :meth:`observe_uncertainty` will be given at the next tick (the filter's
+        prediction, :meth:`Estimator.predicted_covariance`, known a tick ahead), before
+        :meth:`prepare`; planners whose preparation depends on it (the NMPC's corridor)
+        override this."""
 
     def prepare(  # noqa: B027 (optional hook)
         self, state: FloatArray, reference: FloatArray, previous: FloatArray
