@@ -445,6 +445,8 @@ def test_the_linear_mpcs_limits_bound_the_wrench_without_changing_its_cost(
 class _Watching(_ProportionalPlanner):
     """A linear planner that keeps the covariances it is shown and expects."""
 
+    uses_uncertainty = True
+
     def __init__(self) -> None:
         self.observed: list[np.ndarray | None] = []
         self.expected: list[np.ndarray | None] = []

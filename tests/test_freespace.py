@@ -360,14 +360,14 @@ def test_a_start_inside_the_corridor_margin_is_led_out_at_the_recovery_speed(
 
 
 def _warm_in_the_spine(
-    model, spine: FreeSpace, radius: float = 10.9e-3, **config: object
+    model, spine: FreeSpace, radius: float
 ) -> tuple[NMPC, np.ndarray, np.ndarray, np.ndarray]:
     """An NMPC on the spine, its corridor's margins from a covariance, converged on a
     reference along the channel at ``radius`` around its centre (10.9 mm: 1 mm inside the
     anterior wall, the corridor active), and the next tick's predicted state, reference
     and previous currents."""
     robot = load_robots()["drug_delivery"]
-    cfg = NMPCConfig(soft_constraints="slack", first_tick_iterations=60, **config)  # type: ignore[arg-type]
+    cfg = NMPCConfig(soft_constraints="slack", first_tick_iterations=60)
     nmpc = NMPC(model, robot, cfg, spine)
     if nmpc.backend.kernel is None:
         pytest.skip("the split needs the compiled kernel (no C compiler here)")
@@ -383,6 +383,27 @@ def _warm_in_the_spine(
     return nmpc, nmpc.predict(state, first.currents), ref, first.currents
 
 
+def _unprepared_and_prepared(
+    model,
+    spine: FreeSpace,
+    radius: float,
+    expected: np.ndarray,
+    shown: np.ndarray,
+    move: np.ndarray,
+) -> tuple[NMPC, Plan, Plan]:
+    """Two NMPCs warmed alike (:func:`_warm_in_the_spine`) and the next tick's plan of each,
+    both shown the covariance ``shown``, from the predicted state moved by ``move``: one
+    unprepared, one prepared at the predicted state with the covariance ``expected``."""
+    plain, x_p, ref, currents = _warm_in_the_spine(model, spine, radius)
+    split, _, _, _ = _warm_in_the_spine(model, spine, radius)
+    plain.observe_uncertainty(shown)
+    a = plain.plan(x_p + move, ref, currents)
+    split.expect_uncertainty(expected)
+    split.prepare(x_p, ref, currents)
+    split.observe_uncertainty(shown)
+    return split, a, split.plan(x_p + move, ref, currents)
+
+
 def test_a_phantom_tick_is_prepared_from_the_covariance_the_filter_will_have(
     zernike_model, spine: FreeSpace
 ) -> None:
@@ -394,14 +415,9 @@ def test_a_phantom_tick_is_prepared_from_the_covariance_the_filter_will_have(
     between = np.diag([0.9e-3, 0.9e-3, 0.05]) ** 2  # the filter's prediction
     framed = np.diag([0.7e-3, 0.7e-3, 0.04]) ** 2  # another
     for covariance, embedded in ((between, 1), (framed, 0)):
-        plain, x1, ref, currents = _warm_in_the_spine(zernike_model, spine)
-        split, _, _, _ = _warm_in_the_spine(zernike_model, spine)
-        plain.observe_uncertainty(covariance)
-        a = plain.plan(x1, ref, currents)
-        split.expect_uncertainty(between)
-        split.prepare(x1, ref, currents)
-        split.observe_uncertainty(covariance)
-        b = split.plan(x1, ref, currents)
+        split, a, b = _unprepared_and_prepared(
+            zernike_model, spine, 10.9e-3, between, covariance, np.zeros(6)
+        )
         assert b.status.prepare_time > 0
         assert split.backend.embedded == embedded  # type: ignore[attr-defined]
         np.testing.assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
@@ -420,15 +436,9 @@ def test_a_prepared_phantom_tick_embeds_the_measured_state_to_first_order(
     h = 1e-3
     answers = []
     for move in (0.0, h):
-        plain, x_p, ref, currents = _warm_in_the_spine(zernike_model, spine, 13.4e-3)
-        split, _, _, _ = _warm_in_the_spine(zernike_model, spine, 13.4e-3)
-        measured = x_p + move * d
-        plain.observe_uncertainty(between)
-        a = plain.plan(measured, ref, currents)
-        split.expect_uncertainty(between)
-        split.prepare(x_p, ref, currents)
-        split.observe_uncertainty(between)
-        b = split.plan(measured, ref, currents)
+        split, a, b = _unprepared_and_prepared(
+            zernike_model, spine, 13.4e-3, between, between, move * d
+        )
         assert b.status.success
         assert split.backend.embedded == 1  # type: ignore[attr-defined]
         answers.append((a.currents, b.currents))

@@ -200,6 +200,10 @@ class Planner(ABC):
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         """The planner's model of the state one tick after applying ``currents``."""
 
+    #: whether :meth:`observe_uncertainty` and :meth:`expect_uncertainty` use what they are
+    #: given (the controller computes the covariance before the frame only then)
+    uses_uncertainty = False
+
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:  # noqa: B027 (hook)
         """The estimate's covariance (3×3) at this tick before its frame (the filter's
         prediction), before :meth:`plan`; planners that use it (the NMPC's corridor)
@@ -459,8 +463,8 @@ class Controller:
             state = self._predicted_state
             if self.latency > 0:  # the next plan starts when its currents apply
                 state = self._ahead(state)
-            # the next tick's covariance before its frame, as step gives the planner
-            self.planner.expect_uncertainty(self._prior_covariance())
+            if self.planner.uses_uncertainty:  # the next tick's before its frame, as in step
+                self.planner.expect_uncertainty(self._prior_covariance())
             self.planner.prepare(state, self._offset(reference), self.currents)
 
     def _prior_covariance(self) -> FloatArray | None:
@@ -525,11 +529,13 @@ class Controller:
     ) -> ControlOutput:
         """One tick: ``measurement`` is a pose (x, y, θ) or ``None`` when no frame arrived;
         ``age`` (s) how long before this tick the measurement's frame was taken (module doc)."""
-        prior = self._prior_covariance()  # before this tick's frame (module doc)
+        uses = self.planner.uses_uncertainty
+        prior = self._prior_covariance() if uses else None  # before this tick's frame
         state = self._begin(measurement, age)
         estimate = state[:3].copy()
         start = self._ahead(state)  # where the robot is when these currents apply
-        self.planner.observe_uncertainty(prior)
+        if uses:
+            self.planner.observe_uncertainty(prior)
         plan = self.planner.plan(start, self._offset(reference), self.currents)
         fault = ""
         if not np.all(np.isfinite(plan.currents)):

@@ -76,6 +76,11 @@ class NMPC(Planner):
         self._ahead: tuple[FloatArray, FloatArray | None, FloatArray] | None = None
         self._prepare_time = 0.0
 
+    @property
+    def uses_uncertainty(self) -> bool:  # type: ignore[override]
+        """The corridor's chance margins use the estimate's covariance (a phantom's)."""
+        return self.problem.has_corridor
+
     def observe_uncertainty(self, covariance: FloatArray | None) -> None:
         """The estimate's covariance (3×3: x, y, θ) before this tick's frame (the filter's
         prediction), or None: tightens the corridor."""
@@ -244,10 +249,10 @@ class NMPC(Planner):
         return Plan(currents, predicted, status)
 
 
-# --------------------------------------------------------------------------------------------
-# the problem, shared by both solvers
-
-
 def _same(a: FloatArray | None, b: FloatArray | None) -> bool:
     """Whether two covariances (or Nones) are the same, bit for bit."""
     return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+
+
+# --------------------------------------------------------------------------------------------
+# the problem, shared by both solvers
