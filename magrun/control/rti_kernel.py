@@ -133,10 +133,10 @@ def build_kernel(
         target.write_text(generated + "\n" + defines + _DRIVER.read_text())
         return target
 
-    # -O1: gcc spends 2.1 s on the spine's kernel where -O2 spends 3.4 s, and the two run
-    # the same (feedback and preparation medians within 1.5 % on the S and the spine) and
-    # give the same recordings bit for bit: HPIPM and BLASFEO, where a tick's time goes,
-    # are compiled on their own (docs/benchmarks.md, "Compiling the kernel")
+    # -O1: gcc spends 2.1 s on the spine's kernel where -O2 spends 3.4 s; the feedback phase
+    # runs as fast (HPIPM and BLASFEO, where it goes, are compiled on their own), the
+    # preparation 1-1.5 % slower, and the recordings are the same bit for bit
+    # (docs/benchmarks.md, "Compiling the kernel")
     return shared_library(name, write, optimisation="-O1", link=link, without=FALLBACK)
 
 
