@@ -156,10 +156,11 @@ class NMPC(Planner):
 
     def _start(
         self, state: FloatArray, reference: FloatArray, previous: FloatArray,
-        covariance: FloatArray | None = None,
+        covariance: FloatArray | None = None, preparation: bool = False,
     ) -> tuple[FloatArray, FloatArray, FloatArray]:  # fmt: skip
         """(x0 SI, its position in the workspace box; u_prev scaled; stage parameters, the
-        corridor's margins from ``covariance`` where given)."""
+        corridor's margins from ``covariance`` where given). A ``preparation`` keeps the
+        corridor's stages 1 … N for the tick it prepares."""
         N = self.config.horizon
         x0 = np.asarray(state, dtype=np.float64).copy()
         x0[:2] = np.clip(x0[:2], -self.position_bound, self.position_bound)
@@ -173,7 +174,7 @@ class NMPC(Planner):
             np.array_equal(ahead[0], ref) and _same(ahead[1], cov)
         ):  # not prepared for this reference and covariance (the plan is the same)
             ahead = (ref, cov, self._corridor_ahead(ref, cov))
-        if covariance is not None:  # a preparation: kept for the tick it prepares
+        if preparation:
             self._ahead = (ref.copy(), None if cov is None else cov.copy(), ahead[2])
         planes = self._with_start(ahead[2], x0, cov)
         return x0, u_prev, self.problem.stage_parameters(ref, planes)
@@ -213,7 +214,7 @@ class NMPC(Planner):
             if covariance is None:
                 return  # the margins' covariance is not known ahead
         t0 = time.perf_counter()
-        x0, u_prev, params = self._start(state, reference, previous, covariance)
+        x0, u_prev, params = self._start(state, reference, previous, covariance, True)
         done = self.backend.prepare(np.concatenate([x0 / STATE_SCALE, u_prev]), params)
         self._prepare_time = time.perf_counter() - t0 if done else 0.0
 
