@@ -111,6 +111,8 @@ class FreeSpace:
         """Nearest point of the named boundaries to each point, and the normal into the free
         side there. ``points`` (m, 2); returns ``(q, n)``, each (m, 2)."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        if len(p) == 1:
+            return self._nearest_one(float(p[0, 0]), float(p[0, 1]), tuple(names))
         a, ab, ab2, inward = self._group(tuple(names))
         px, py = p[:, :1], p[:, 1:]
         u = np.clip(((px - a[:, 0]) * ab[:, 0] + (py - a[:, 1]) * ab[:, 1]) / ab2, 0.0, 1.0)
@@ -127,6 +129,27 @@ class FreeSpace:
         sign = np.where(np.sum(r * nj, axis=1) >= 0, 1.0, -1.0)
         n = np.where((dj > 1e-9)[:, None], sign[:, None] * radial, nj)
         return qj, n
+
+    def _nearest_one(
+        self, px: float, py: float, names: tuple[str, ...]
+    ) -> tuple[FloatArray, FloatArray]:
+        """:meth:`nearest` for one point (the NMPC's start, every tick): the same arithmetic
+        in fewer array operations, so the same result to the last bit, in a third of the
+        time."""
+        a, ab, ab2, inward = self._group(names)
+        ax, ay, bx, by = a[:, 0], a[:, 1], ab[:, 0], ab[:, 1]
+        u = ((px - ax) * bx + (py - ay) * by) / ab2
+        np.clip(u, 0.0, 1.0, out=u)
+        qx, qy = ax + u * bx, ay + u * by
+        d2 = (px - qx) ** 2 + (py - qy) ** 2
+        j = int(np.argmin(d2))
+        q = np.array([[qx[j], qy[j]]])
+        dj, nj = math.sqrt(d2[j]), inward[j]
+        rx, ry = px - qx[j], py - qy[j]
+        if dj > 1e-9:  # off a vertex the direction to the point; its sign is the side
+            sign = 1.0 if rx * nj[0] + ry * nj[1] >= 0 else -1.0
+            return q, np.array([[sign * (rx / dj), sign * (ry / dj)]])
+        return q, nj[None, :].copy()
 
     def _group(self, names: tuple[str, ...]) -> tuple[FloatArray, ...]:
         """Segment starts, directions, squared lengths and inward normals of the named

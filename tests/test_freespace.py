@@ -60,6 +60,22 @@ def test_projection_keeps_a_pose_that_fits(spine: FreeSpace) -> None:
     np.testing.assert_array_equal(spine.project(pose), pose)
 
 
+def test_nearest_for_one_point_is_the_nearest_for_many_to_the_last_bit(spine: FreeSpace) -> None:
+    """The one-point path (the NMPC's start, every tick) gives the vectorised one's nearest
+    point and normal bit for bit: inside and outside the outline, on a vertex's normal, and
+    on the boundary itself (the normal then the segment's)."""
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-0.02, 0.02, (400, 2))
+    boundary = spine.boundaries["anterior"]
+    points = np.vstack([points, boundary[::7], boundary[1::7] + 1e-3 * rng.normal(size=(1, 2))])
+    for names in (["anterior"], ["posterior", "chamber", "entry"], list(spine.boundaries)):
+        q, n = spine.nearest(points, names)
+        for i, point in enumerate(points):
+            q1, n1 = spine.nearest(point[None], names)
+            np.testing.assert_array_equal(q1[0], q[i])
+            np.testing.assert_array_equal(n1[0], n[i])
+
+
 def test_corridor_faces_into_the_channel(spine: FreeSpace) -> None:
     """At points of the path, the corridor's normal points from the anterior wall into the
     channel and c puts the body's edge D/2 (+ margin) from the wall: the path's points
