@@ -134,7 +134,7 @@ class FreeSpace:
         self, px: float, py: float, names: tuple[str, ...]
     ) -> tuple[FloatArray, FloatArray]:
         """:meth:`nearest` for one point (the NMPC's start, every tick): the same arithmetic
-        in fewer array operations, so the same result to the last bit, in a third of the
+        in fewer array operations, so the same result to the last bit, in under half the
         time."""
         a, ab, ab2, inward = self._group(names)
         ax, ay, bx, by = a[:, 0], a[:, 1], ab[:, 0], ab[:, 1]
