@@ -214,7 +214,7 @@ class NMPC(Planner):
             if covariance is None:
                 return  # the margins' covariance is not known ahead
         t0 = time.perf_counter()
-        x0, u_prev, params = self._start(state, reference, previous, covariance, True)
+        x0, u_prev, params = self._start(state, reference, previous, covariance, preparation=True)
         done = self.backend.prepare(np.concatenate([x0 / STATE_SCALE, u_prev]), params)
         self._prepare_time = time.perf_counter() - t0 if done else 0.0
 
