@@ -76,6 +76,32 @@ def test_nearest_for_one_point_is_the_nearest_for_many_to_the_last_bit(spine: Fr
             np.testing.assert_array_equal(n1[0], n[i])
 
 
+def test_corridor_for_one_point_is_the_vectorised_corridor_to_the_last_bit(
+    spine: FreeSpace,
+) -> None:
+    """The one-point corridor (the NMPC's start, every tick) gives the half-plane the
+    vectorised path gives that point bit for bit: with and without a covariance (one with
+    a correlation, whose variance along the normal depends on the order of summation), with
+    the margin capped by the channel's width or not, inside and outside the outline. (The
+    vectorised path's einsum may sum many rows in another order than one: each point is
+    compared with the vectorised path given that point alone, what the NMPC's start got
+    from it.)"""
+    rng = np.random.default_rng(7)
+    points = np.vstack([
+        rng.uniform(-0.02, 0.02, (300, 2)),
+        spine.boundaries["anterior"][::9] + 1e-3 * rng.normal(size=(1, 2)),
+    ])  # fmt: skip
+    correlated = np.array([[2.0e-6, 0.7e-6], [0.7e-6, 1.1e-6]])
+    for covariance in (None, np.diag([1e-6, 4e-6]), correlated):
+        for sigmas, share in ((1.0, 1.0), (2.0, 0.3)):
+            for point in points:
+                alone = spine._corridor_many(
+                    point[None], np.empty((1, 3)), covariance, 0.5e-3, sigmas, share
+                )
+                one = spine.corridor(point[None], covariance, 0.5e-3, sigmas, share)
+                np.testing.assert_array_equal(one, alone)
+
+
 def test_corridor_faces_into_the_channel(spine: FreeSpace) -> None:
     """At points of the path, the corridor's normal points from the anterior wall into the
     channel and c puts the body's edge D/2 (+ margin) from the wall: the path's points

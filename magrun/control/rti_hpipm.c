@@ -57,6 +57,7 @@
 #include "hpipm_d_ocp_qp_sol.h"
 
 #define RTI_REG 1e-9 /* keeps H positive definite along the unweighted velocities */
+#define RTI_NX (RTI_NS - RTI_NU) /* the state in a stage s = (X, u_prev) */
 /* array sizes that may be zero */
 #define RTI_NG1 (RTI_NG > 0 ? RTI_NG : 1)
 #define RTI_NGT1 (RTI_NGT > 0 ? RTI_NGT : 1)
@@ -377,9 +378,14 @@ int rti_feedback(void *handle, const double *s0, double *info, double max_defect
         m->b[i] = acc;
     }
     double defect = 0.0; /* linearised next state (b + s_1) against the stage's own at s0 */
-    if (moved) {
-        eval_stage(m, s0, m->V, m->par0);
-        for (int i = 0; i < RTI_NS; ++i) defect = fmax(defect, fabs(m->sn[i] - m->b[i] - m->S[i]));
+    if (moved) { /* the stage's next state (X, u) = (f(X_0, u_0), u_0): the model's step
+                  * alone, without the stage's residuals and Jacobians */
+        double next[RTI_NS];
+        for (int i = 0; i < RTI_NU; ++i) next[RTI_NX + i] = s0[RTI_NX + i] + m->V[i];
+        m->arg_ptr[0] = s0, m->arg_ptr[1] = next + RTI_NX;
+        m->res_ptr[0] = next;
+        rti_step(m->arg_ptr, m->res_ptr, m->iw, m->w, 0);
+        for (int i = 0; i < RTI_NS; ++i) defect = fmax(defect, fabs(next[i] - m->b[i] - m->S[i]));
     }
     info[5] = defect;
     if (!(defect <= max_defect)) return -2;
