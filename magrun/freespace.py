@@ -243,7 +243,8 @@ class FreeSpace:
     ) -> tuple[float, float, float]:  # fmt: skip
         """:meth:`corridor` for one point (the NMPC's start, every tick): the vectorised
         path's arithmetic on floats, in its order (the variance as its einsum sums one row),
-        so the same half-plane to the last bit, in two thirds of the time."""
+        so the same half-plane to the last bit (NaN where it gives NaN), in under half the
+        time."""
         assert self.critical is not None
         q1x, q1y, n1x, n1y = self._nearest_xy(px, py, (self.critical,))
         extra = 0.0
@@ -261,7 +262,10 @@ class FreeSpace:
                 if facing > 0.1:
                     width = -across / facing
             free = width - self.diameter - 2 * margin
-            extra = min(sigmas * math.sqrt(max(var, 0.0)), share * max(free, 0.0))
+            chance, cap = sigmas * math.sqrt(max(var, 0.0)), share * max(free, 0.0)
+            # np.minimum's NaN: either NaN gives NaN (0 · ∞ where a share of 0 meets an
+            # unbounded width, a NaN covariance)
+            extra = math.nan if math.isnan(chance) or math.isnan(cap) else min(chance, cap)
         return n1x, n1y, (n1x * q1x + n1y * q1y) + self.radius + margin + extra
 
     @functools.cached_property
