@@ -189,6 +189,34 @@ def test_shapes_are_drawn_by_their_area_coverage(seed: int) -> None:
     assert_allclose([np.sum(cover * uu), np.sum(cover * vv)] / cover.sum(), c, atol=0.1)
 
 
+def test_shapes_rasterised_together_are_each_rasterised_as_alone() -> None:
+    """The renderer works out the outlines of a frame's shapes (every pose of a motion-blurred
+    exposure) in one pass; each comes out to the last bit as it does alone: the same pixels,
+    the same fixed-point outline. Random quadrilaterals and stadiums, some cut by the canvas's
+    sides and some outside it."""
+    from magrun.tracking.render import _stadium
+
+    rng = np.random.default_rng(5)
+    canvas = _Canvas(np.zeros((40, 50, 3), np.float32), origin=(7, 3))
+    outlines = []
+    for _ in range(60):
+        c = rng.uniform(-10, 70, 2)
+        angles = np.arange(4) * np.pi / 2 + rng.uniform(-0.5, 0.5, 4)
+        outlines.append(c + rng.uniform(1, 12) * np.column_stack([np.cos(angles), np.sin(angles)]))
+        outlines.append(_stadium(c, c + rng.uniform(-9, 9, 2), rng.uniform(0.5, 5)))
+    together = canvas.rasterise(outlines)
+    assert sum(r is None for r in together) > 5  # some miss the canvas
+    assert sum(r is not None for r in together) > 60
+    for outline, raster in zip(outlines, together, strict=True):
+        (alone,) = canvas.rasterise([outline])
+        if alone is None:
+            assert raster is None
+        else:
+            assert raster is not None
+            assert raster[0] == alone[0]
+            assert np.array_equal(raster[1], alone[1])
+
+
 @pytest.mark.parametrize("theta", [0.0, 0.7, 2.0, -2.6])
 def test_rendered_magnet_robot_matches_its_labels(robots, theta: float) -> None:
     """Pink front half around c + L/4·u, yellow rear half around c − L/4·u.

@@ -98,18 +98,75 @@ def _fixed(uv: FloatArray) -> NDArray[np.int32]:
 
 
 def inset(polygon: FloatArray, delta: float) -> FloatArray:
-    """The convex ``polygon`` (n, 2) with every edge moved inward by ``delta``."""
+    """The convex ``polygon`` (n, 2) with every edge moved inward by ``delta``; polygons of
+    one vertex count stacked as (..., n, 2) are each moved alike, to the same last bit."""
     p = np.asarray(polygon, dtype=np.float64)
-    nxt = np.vstack([p[1:], p[:1]])  # each vertex's successor (np.roll, without its overhead)
+    # each vertex's successor (np.roll, without its overhead)
+    nxt = np.concatenate([p[..., 1:, :], p[..., :1, :]], axis=-2)
     edge = nxt - p
-    area2 = float(np.sum(p[:, 0] * nxt[:, 1] - nxt[:, 0] * p[:, 1]))
-    sign = 1.0 if area2 > 0 else -1.0  # counter-clockwise (in u, v): the inside is to the left
-    normal = sign * np.column_stack([-edge[:, 1], edge[:, 0]])
-    normal /= np.maximum(np.hypot(normal[:, 0], normal[:, 1]), 1e-12)[:, None]
-    before = np.vstack([normal[-1:], normal[:-1]])  # the edge ending at each vertex
+    area2 = np.sum(p[..., 0] * nxt[..., 1] - nxt[..., 0] * p[..., 1], axis=-1)
+    # counter-clockwise (in u, v): the inside is to the left
+    sign = np.where(area2 > 0, 1.0, -1.0)[..., None, None]
+    normal = sign * np.stack([-edge[..., 1], edge[..., 0]], axis=-1)
+    normal /= np.maximum(np.hypot(normal[..., 0], normal[..., 1]), 1e-12)[..., None]
+    # the normal of the edge ending at each vertex
+    before = np.concatenate([normal[..., -1:, :], normal[..., :-1, :]], axis=-2)
     # offset lines meet at v + δ (n₁ + n₂) / (1 + n₁·n₂)
-    denom = np.maximum(1.0 + np.sum(before * normal, axis=1), 1e-6)
-    return p + delta * (before + normal) / denom[:, None]
+    denom = np.maximum(1.0 + np.sum(before * normal, axis=-1), 1e-6)
+    return p + delta * (before + normal) / denom[..., None]
+
+
+#: a shape to paint: a convex outline (n, 2) in frame px, its colour (RGB, 0–1) and opacity
+Shape = tuple[FloatArray, tuple[float, float, float], float]
+#: a shape rasterised for a canvas: the box it covers (rows, columns) and its inset outline
+#: on the box's fine grid, in OpenCV's fixed point; None where it misses the canvas
+_Raster = tuple[tuple[slice, slice], NDArray[np.int32]] | None
+#: a half-circle's angles, rad
+_HALF_TURN = np.arange(_ARC + 1) / _ARC * math.pi
+
+
+def _rasterise(
+    outlines: list[FloatArray], origin: FloatArray, shape: tuple[int, int]
+) -> list[_Raster]:
+    """Where each convex outline (frame px) lands on a canvas of ``shape`` (h, w) whose
+    top-left pixel is ``origin``: the pixels it can touch, and its outline on their fine grid
+    (×:data:`_SUPERSAMPLE`). Outlines with as many vertices are worked out together, each to
+    the same last bit as alone."""
+    h, w = shape
+    out: list[_Raster] = [None] * len(outlines)
+    groups: dict[int, list[int]] = {}
+    for i, uv in enumerate(outlines):
+        groups.setdefault(len(uv), []).append(i)
+    for members in groups.values():
+        local = np.stack([outlines[i] for i in members]) - origin
+        # every pixel the polygon (or OpenCV's ½ fine-px overshoot) can touch
+        lo = np.maximum(np.floor(local.min(axis=1)).astype(int) - 1, 0)
+        hi = np.minimum(np.ceil(local.max(axis=1)).astype(int) + 2, [w, h])
+        # fine pixel j's centre is at coarse coordinate (j + 0.5)/S − 0.5
+        fine = (local - lo[:, None, :] + 0.5) * _SUPERSAMPLE - 0.5
+        # OpenCV fills every pixel the outline touches, ~½ px beyond it: inset by the 0.45
+        # fine px that makes the filled area match the polygon's over random shapes
+        fixed = _fixed(inset(fine, 0.45))
+        for j, i in enumerate(members):
+            (u0, v0), (u1, v1) = lo[j], hi[j]
+            if u1 > u0 and v1 > v0:
+                out[i] = (slice(v0, v1), slice(u0, u1)), fixed[j]
+    return out
+
+
+def _stadium(a: FloatArray, b: FloatArray, radius: float) -> FloatArray:
+    """The set of points within ``radius`` px of segment a–b as one convex outline: two
+    half-circles of :data:`_ARC` edges each, the radius scaled so the polygon's area is the
+    round shape's (OpenCV's filled circles cover ~π(r + ½)²)."""
+    d = b - a
+    angle = math.atan2(d[1], d[0])
+    r = radius * math.sqrt(math.pi / (_ARC * math.sin(math.pi / _ARC)))
+    arc_b = angle - math.pi / 2 + _HALF_TURN
+    arc_a = angle + math.pi / 2 + _HALF_TURN
+    return np.concatenate(
+        [b + r * np.column_stack([np.cos(arc_b), np.sin(arc_b)]),
+         a + r * np.column_stack([np.cos(arc_a), np.sin(arc_a)])]
+    )  # fmt: skip
 
 
 class _Canvas:
@@ -127,41 +184,32 @@ class _Canvas:
     def __init__(self, image: F32, origin: tuple[int, int] = (0, 0)) -> None:
         self.image = image
         self.origin = np.array(origin, dtype=np.float64)
-        self._mask = np.zeros((0, 0), dtype=np.uint8)
 
-    def _fill(self, uv: FloatArray) -> tuple[slice, slice] | None:
-        """Rasterise the convex polygon ``uv`` (frame px) into a fine mask over its bounding box.
+    def rasterise(self, outlines: list[FloatArray]) -> list[_Raster]:
+        return _rasterise(outlines, self.origin, self.image.shape[:2])
 
-        Returns the box (rows, columns of :attr:`image`), or None when the polygon misses it.
-        """
-        local = uv - self.origin
-        h, w = self.image.shape[:2]
-        # every pixel the polygon (or OpenCV's ½ fine-px overshoot) can touch
-        u0, v0 = np.maximum(np.floor(local.min(axis=0)).astype(int) - 1, 0)
-        u1, v1 = np.minimum(np.ceil(local.max(axis=0)).astype(int) + 2, [w, h])
-        if u1 <= u0 or v1 <= v0:
-            return None
-        self._mask = np.zeros(((v1 - v0) * _SUPERSAMPLE, (u1 - u0) * _SUPERSAMPLE), np.uint8)
-        # fine pixel j's centre is at coarse coordinate (j + 0.5)/S − 0.5
-        fine = (local - (u0, v0) + 0.5) * _SUPERSAMPLE - 0.5
-        # OpenCV fills every pixel the outline touches, ~½ px beyond it: inset by the 0.45
-        # fine px that makes the filled area match the polygon's over random shapes
-        cv2.fillConvexPoly(self._mask, _fixed(inset(fine, 0.45)), 255, cv2.LINE_8, _SHIFT)
-        return slice(v0, v1), slice(u0, u1)
-
-    def _blend(
-        self, box: tuple[slice, slice] | None, colour: tuple[float, float, float], opacity: float
-    ) -> None:
-        if box is None:
+    def paint(self, raster: _Raster, colour: tuple[float, float, float], opacity: float) -> None:
+        """Blend a rasterised shape (:meth:`rasterise`) in, ``opacity`` of it over its cover."""
+        if raster is None:
             return
+        box, outline = raster
         target = self.image[box]
         h, w = target.shape[:2]
-        cover = cv2.resize(self._mask, (w, h), interpolation=cv2.INTER_AREA)
+        mask = np.zeros((h * _SUPERSAMPLE, w * _SUPERSAMPLE), np.uint8)
+        cv2.fillConvexPoly(mask, outline, 255, cv2.LINE_8, _SHIFT)
+        cover = cv2.resize(mask, (w, h), interpolation=cv2.INTER_AREA)
         a = cover.astype(np.float32) * np.float32(opacity / 255.0)
         target += a[..., None] * (np.asarray(colour, dtype=np.float32) - target)
 
+    def shapes(self, shapes: list[Shape]) -> None:
+        """Paint ``shapes`` in order, back to front."""
+        for raster, (_, colour, opacity) in zip(
+            self.rasterise([uv for uv, _, _ in shapes]), shapes, strict=True
+        ):
+            self.paint(raster, colour, opacity)
+
     def polygon(self, uv: FloatArray, colour: tuple[float, float, float], opacity: float) -> None:
-        self._blend(self._fill(uv), colour, opacity)
+        self.shapes([(np.asarray(uv, dtype=np.float64), colour, opacity)])
 
     def capsule(
         self,
@@ -172,19 +220,7 @@ class _Canvas:
         opacity: float,
     ) -> None:
         """The set of points within ``radius`` px of segment a–b (a stadium)."""
-        # one convex polygon: two half-circles of _ARC vertices each, the radius scaled so the
-        # polygon's area is the round shape's (OpenCV's filled circles cover ~π(r + ½)²)
-        d = b - a
-        angle = math.atan2(d[1], d[0])
-        k = np.arange(_ARC + 1) / _ARC * math.pi
-        r = radius * math.sqrt(math.pi / (_ARC * math.sin(math.pi / _ARC)))
-        arc_b = angle - math.pi / 2 + k
-        arc_a = angle + math.pi / 2 + k
-        outline = np.concatenate(
-            [b + r * np.column_stack([np.cos(arc_b), np.sin(arc_b)]),
-             a + r * np.column_stack([np.cos(arc_a), np.sin(arc_a)])]
-        )  # fmt: skip
-        self.polygon(outline, colour, opacity)
+        self.polygon(_stadium(a, b, radius), colour, opacity)
 
 
 def draw_walls(image: F32, camera: Camera, walls: Walls) -> None:
@@ -201,6 +237,47 @@ def robot_reach_px(camera: Camera, robot: RobotParams) -> float:
     return (robot.length / 2 + robot.diameter / 2) * camera.scale + 2
 
 
+def robot_shapes(camera: Camera, pose: ArrayLike, robot: RobotParams) -> list[Shape]:
+    """The robot at ``pose`` (x, y, θ; m, rad) as the convex shapes it is painted with, back to
+    front, outlines in frame px."""
+    x, y, th = np.asarray(pose, dtype=np.float64)
+    s = camera.scale
+    half_l, radius = robot.length / 2 * s, robot.diameter / 2 * s
+    c = camera.to_pixel([x, y])
+    u = np.array([np.cos(th), -np.sin(th)])  # image v points down: world +y is −v
+    n = np.array([-u[1], u[0]])
+
+    def rect(s0: float, s1: float, half_width: float) -> FloatArray:
+        # corners c + s·u ± w·n, in the order s0 + w, s1 + w, s1 − w, s0 − w
+        along = np.multiply.outer((s0, s1, s1, s0), u)
+        across = np.multiply.outer((half_width, half_width, -half_width, -half_width), n)
+        return c + along + across
+
+    if robot.appearance == "capsule":
+        cap = half_l - radius
+        inner = max(radius - 0.3e-3 * s, 0.5)
+        magnet_at = half_l - radius * 0.9
+        return [
+            (_stadium(c - cap * u, c + cap * u, radius), SHELL_EDGE, 0.75),
+            (_stadium(c - cap * u, c + cap * u, inner), SHELL, 0.8),
+            (rect(-cap, 0.25 * half_l, 0.8 * inner), DRUG, 0.65),
+            (rect(magnet_at - 0.5e-3 * s, magnet_at + 0.5e-3 * s, 0.85 * inner), MAGNET, 0.95),
+        ]
+    return [
+        (rect(-half_l, 0.0, radius), YELLOW, 1.0),
+        (rect(0.0, half_l, radius), PINK, 1.0),
+        (rect(-half_l, half_l, radius / 3), (1.0, 1.0, 1.0), 0.3),  # specular line
+    ]
+
+
+def _in_view(centre: FloatArray, reach: float, image: F32, origin: tuple[int, int]) -> bool:
+    """Whether a robot centred at ``centre`` (frame px) that reaches ``reach`` px from it can
+    touch ``image``, a window of the frame whose top-left pixel is ``origin``."""
+    local = centre - origin
+    h, w = image.shape[:2]
+    return not (np.any(local + reach < 0) or np.any(local - reach > (w, h)))
+
+
 def draw_robot(
     image: F32,
     camera: Camera,
@@ -212,39 +289,9 @@ def draw_robot(
 
     ``image`` is the frame, or a window of it whose top-left pixel is ``origin`` (u, v).
     """
-    x, y, th = np.asarray(pose, dtype=np.float64)
-    s = camera.scale
-    half_l, radius = robot.length / 2 * s, robot.diameter / 2 * s
-    c = camera.to_pixel([x, y])
-    u = np.array([np.cos(th), -np.sin(th)])  # image v points down: world +y is −v
-    n = np.array([-u[1], u[0]])
-    h, w = image.shape[:2]
-    local = c - origin
-    reach = robot_reach_px(camera, robot)
-    if np.any(local + reach < 0) or np.any(local - reach > (w, h)):
-        return  # out of view
-    canvas = _Canvas(image, origin)
-
-    def rect(s0: float, s1: float, half_width: float) -> FloatArray:
-        return np.array(
-            [c + s0 * u + half_width * n, c + s1 * u + half_width * n,
-             c + s1 * u - half_width * n, c + s0 * u - half_width * n]
-        )  # fmt: skip
-
-    if robot.appearance == "capsule":
-        cap = half_l - radius
-        canvas.capsule(c - cap * u, c + cap * u, radius, SHELL_EDGE, 0.75)
-        inner = max(radius - 0.3e-3 * s, 0.5)
-        canvas.capsule(c - cap * u, c + cap * u, inner, SHELL, 0.8)
-        canvas.polygon(rect(-cap, 0.25 * half_l, 0.8 * inner), DRUG, 0.65)
-        magnet_at = half_l - radius * 0.9
-        canvas.polygon(
-            rect(magnet_at - 0.5e-3 * s, magnet_at + 0.5e-3 * s, 0.85 * inner), MAGNET, 0.95
-        )
-    else:
-        canvas.polygon(rect(-half_l, 0.0, radius), YELLOW, 1.0)
-        canvas.polygon(rect(0.0, half_l, radius), PINK, 1.0)
-        canvas.polygon(rect(-half_l, half_l, radius / 3), (1.0, 1.0, 1.0), 0.3)  # specular line
+    centre = camera.to_pixel(np.asarray(pose, dtype=np.float64)[:2])
+    if _in_view(centre, robot_reach_px(camera, robot), image, origin):
+        _Canvas(image, origin).shapes(robot_shapes(camera, pose, robot))
 
 
 def finish(
@@ -340,10 +387,22 @@ class Renderer:
             box = (slice(lo[1], hi[1]), slice(lo[0], hi[0]))
             base = self._background[box]
             patch = np.zeros_like(base)
-            for p in poses:
-                drawn = base.copy()
-                draw_robot(drawn, self.camera, p, self.robot, origin=(int(lo[0]), int(lo[1])))
-                patch += drawn - base  # zero within `margin` of the window's inner sides
+            origin = (int(lo[0]), int(lo[1]))
+            canvas = _Canvas(base, origin)
+            # each pose's robot drawn on the background alone; the shapes of all of them
+            # rasterised together (the same as one at a time, cheaper)
+            reach = robot_reach_px(self.camera, self.robot)
+            shapes = [
+                robot_shapes(self.camera, p, self.robot)
+                if _in_view(centre, reach, base, origin) else []
+                for p, centre in zip(poses, c, strict=True)
+            ]  # fmt: skip
+            rasters = iter(canvas.rasterise([uv for one in shapes for uv, _, _ in one]))
+            for one in shapes:
+                canvas.image = base.copy()
+                for _, colour, opacity in one:
+                    canvas.paint(next(rasters), colour, opacity)
+                patch += canvas.image - base  # zero within `margin` of the window's inner sides
             if len(poses) > 1:
                 patch /= np.float32(len(poses))
             if cfg.blur_px > 0:  # so the reflected border equals the whole frame's blur
