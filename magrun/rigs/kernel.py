@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from magrun.compiled import cache_dir
+from magrun.rigs import plant
 from magrun.robot import relaxation
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
@@ -39,6 +40,11 @@ ROBOT_FIELDS = ("moment", "drag_parallel", "drag_perpendicular", "drag_rotation"
 
 #: :func:`magrun.robot.relaxation` compiled: the Python plant's constants, the same definition
 _relaxation = njit(cache=True, nogil=True, inline="always")(relaxation)
+#: the amplifiers' lag and the flow's Ornstein–Uhlenbeck recurrence compiled, the same
+#: definitions (:func:`magrun.rigs.plant.lag_path`, :func:`magrun.rigs.plant.ou_path`): each
+#: a loop over a tick's sub-steps, which costs the interpreter more than its arithmetic
+lag_path = njit(cache=True, nogil=True)(plant.lag_path)
+ou_path = njit(cache=True, nogil=True)(plant.ou_path)
 
 
 @njit(cache=True, nogil=True, inline="always")

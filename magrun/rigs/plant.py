@@ -290,17 +290,45 @@ def _bilinear(values: FloatArray, x0: float, y0: float, step: float, q: FloatArr
 
 
 def amplifier_path(
-    driven: FloatArray, target: FloatArray, tau: float, slew: FloatArray | float, h: float, n: int
+    driven: FloatArray,
+    target: FloatArray,
+    tau: float,
+    slew: FloatArray | float,
+    h: float,
+    n: int,
+    path: Callable[..., FloatArray] | None = None,
 ) -> FloatArray:
     """The currents after each of ``n`` sub-steps of ``h`` s, (n, channels): a first-order lag
-    of time constant ``tau`` s toward ``target``, its rate limited to ``slew`` A/s."""
-    out = np.empty((n, driven.size))
+    of time constant ``tau`` s toward ``target``, its rate limited to ``slew`` A/s. ``path``:
+    the recurrence (:func:`lag_path`, or the same compiled)."""
     decay = -math.expm1(-h / tau)  # 1 − e^(−h/τ)
-    limit = np.asarray(slew, dtype=np.float64) * h
-    I = driven.astype(np.float64)
+    limit = np.broadcast_to(np.asarray(slew, dtype=np.float64) * h, driven.shape)
+    step = lag_path if path is None else path
+    return step(driven.astype(np.float64), np.asarray(target, np.float64), decay, limit, n)
+
+
+def lag_path(
+    current: FloatArray, target: FloatArray, decay: float, limit: FloatArray, n: int
+) -> FloatArray:
+    """:func:`amplifier_path`'s recurrence: ``n`` steps of ``I ← I + clip((I* − I)·decay,
+    ±limit)`` from ``current``, (n, channels). Written for Numba too: the compiled plant runs
+    this same definition compiled (:mod:`magrun.rigs.kernel`), to the same last bit."""
+    out = np.empty((n, current.size))
+    I = current
     for k in range(n):
         I = I + np.clip((target - I) * decay, -limit, limit)
         out[k] = I
+    return out
+
+
+def ou_path(value: FloatArray, a: float, b: float, xi: FloatArray) -> FloatArray:
+    """:class:`OrnsteinUhlenbeck`'s recurrence ``v ← v·a + b·ξₖ`` over the rows of ``xi``
+    from ``value``, (n, dims). Written for Numba too, as :func:`lag_path`."""
+    out = np.empty_like(xi)
+    v = value
+    for k in range(xi.shape[0]):
+        v = v * a + b * xi[k]
+        out[k] = v
     return out
 
 
@@ -317,17 +345,15 @@ class OrnsteinUhlenbeck:
         self.sigma, self.time, self.rng = sigma, time, rng
         self.value = rng.normal(0.0, 1.0, dims) * sigma
 
-    def sample(self, n: int, h: float) -> FloatArray:
-        """The next ``n`` values at steps of ``h`` s, (n, dims)."""
+    def sample(self, n: int, h: float, path: Callable[..., FloatArray] | None = None) -> FloatArray:
+        """The next ``n`` values at steps of ``h`` s, (n, dims); ``path``: the recurrence
+        (:func:`ou_path`, or the same compiled)."""
         a = math.exp(-h / self.time)
         b = self.sigma * math.sqrt(-math.expm1(-2 * h / self.time))
         xi = self.rng.normal(0.0, 1.0, (n, self.value.size))
-        out = np.empty_like(xi)
-        v = self.value
-        for k in range(n):
-            v = v * a + b * xi[k]
-            out[k] = v
-        self.value = v
+        out = (ou_path if path is None else path)(self.value, a, b, xi)
+        if n:
+            self.value = out[-1].copy()
         return out
 
 

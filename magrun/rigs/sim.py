@@ -208,10 +208,20 @@ class SimRig(Rig):
         self._half_axis = max(robot.length / 2 - self._contact_radius, 0.0)
         self._reach = self._half_axis + self._contact_radius  # farthest body point from centre
         self.compiled = compiled
+        #: the amplifiers' and the flow's recurrences (None: plant.py's, in Python)
+        self._lag_path: Callable[..., FloatArray] | None = None
+        self._ou_path: Callable[..., FloatArray] | None = None
         if compiled:
-            from magrun.rigs.kernel import ROBOT_FIELDS, free_substeps, resolve_capsule
+            from magrun.rigs.kernel import (
+                ROBOT_FIELDS,
+                free_substeps,
+                lag_path,
+                ou_path,
+                resolve_capsule,
+            )
 
             self._kernel, self._resolve = free_substeps, resolve_capsule
+            self._lag_path, self._ou_path = lag_path, ou_path
             self._disks = capsule_disks(self._half_axis, self._contact_radius)
             self._robot_vector = np.array([getattr(self.robot, f) for f in ROBOT_FIELDS])
             if imperfections.contact:
@@ -384,7 +394,7 @@ class SimRig(Rig):
         without flow."""
         if self._flow is None:
             return np.empty((0, 2))
-        v = self._flow.sample(n, h)
+        v = self._flow.sample(n, h, self._ou_path)
         if self._flow_path is None:
             return v
         path = self._flow_path  # along the channel: its direction nearest the robot
@@ -485,7 +495,9 @@ class SimRig(Rig):
             return np.empty((0, delta.size))
         tau = self.imperfections.amplifier_tau
         if tau > 0:  # a first-order lag, rate-limited (magrun.rigs.plant.amplifier_path)
-            path = amplifier_path(self.driven, self.target, tau, self.max_slew_rate, h, n)
+            path = amplifier_path(
+                self.driven, self.target, tau, self.max_slew_rate, h, n, self._lag_path
+            )
             close = np.all(np.abs(path - self.target) <= 1e-12, axis=1)
             if np.any(close):  # settled to rounding: hold the target from there
                 first = int(np.argmax(close))
