@@ -61,7 +61,7 @@ def fuse_batch_norm(model: KeypointUNet) -> nn.Module:
         block._modules.clear()
         for k, m in enumerate(out):
             block.add_module(str(k), m)
-    return fused.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    return fused.to(memory_format=torch.channels_last)
 
 
 def torch_net(model: nn.Module) -> HeatmapNet:
@@ -87,7 +87,7 @@ def onnx_bytes(model: nn.Module, digest: str | None = None) -> bytes:
         torch.onnx.export(
             model,
             (torch.zeros(1, 3, 64, 64),),
-            buf,  # type: ignore[arg-type]  # any binary file object works
+            buf,  # any binary file object works
             input_names=["image"],
             output_names=["heatmaps"],
             dynamic_axes={"image": axes, "heatmaps": axes},
