@@ -388,21 +388,21 @@ class Renderer:
             base = self._background[box]
             patch = np.zeros_like(base)
             origin = (int(lo[0]), int(lo[1]))
-            canvas = _Canvas(base, origin)
             # each pose's robot drawn on the background alone; the shapes of all of them
-            # rasterised together (the same as one at a time, cheaper)
+            # rasterised together (each the same as alone, the pass cheaper)
             reach = robot_reach_px(self.camera, self.robot)
             shapes = [
                 robot_shapes(self.camera, p, self.robot)
                 if _in_view(centre, reach, base, origin) else []
                 for p, centre in zip(poses, c, strict=True)
             ]  # fmt: skip
-            rasters = iter(canvas.rasterise([uv for one in shapes for uv, _, _ in one]))
+            outlines = [uv for one in shapes for uv, _, _ in one]
+            rasters = iter(_rasterise(outlines, np.array(origin, np.float64), base.shape[:2]))
             for one in shapes:
-                canvas.image = base.copy()
+                drawn = _Canvas(base.copy(), origin)
                 for _, colour, opacity in one:
-                    canvas.paint(next(rasters), colour, opacity)
-                patch += canvas.image - base  # zero within `margin` of the window's inner sides
+                    drawn.paint(next(rasters), colour, opacity)
+                patch += drawn.image - base  # zero within `margin` of the window's inner sides
             if len(poses) > 1:
                 patch /= np.float32(len(poses))
             if cfg.blur_px > 0:  # so the reflected border equals the whole frame's blur
