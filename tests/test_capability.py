@@ -24,6 +24,7 @@ from test_emns import SYNTHETIC
 from magrun.cli import cli
 from magrun.field.capability import (
     HELD_SAMPLES,
+    HELD_SMOOTHING,
     HELD_SPARE,
     Site,
     WorkspaceCapability,
@@ -206,8 +207,9 @@ def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
     held = held_reference(model, ROBOT, 10.0, reference)
     planned, offsets = held.trajectory, held.offsets
     assert planned is not reference
-    assert_allclose(planned.t, reference.t)
-    assert_allclose(planned.poses[:, :2], reference.poses[:, :2])
+    # the same positions at the same times: on the reference's knots and the samples'
+    assert np.all(np.isin(reference.t, planned.t))
+    assert_allclose(planned.poses[:, :2], reference.pose(planned.t)[:, :2], rtol=0, atol=1e-12)
     t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
     poses = reference.pose(t)
     rates = np.gradient(poses, t, axis=0)
@@ -226,9 +228,36 @@ def test_the_planned_headings_are_ones_the_coils_hold(tmp_path: Path) -> None:
     for k in np.flatnonzero(offsets == 0)[::40]:
         assert factor(k, 0.0) >= HELD_SPARE
     # the planned headings are the reference's plus the smoothed offsets: within their range
-    turn = planned.poses[:, 2] - reference.poses[:, 2]
+    turn = planned.poses[:, 2] - reference.pose(planned.t)[:, 2]
     assert turn.min() >= offsets.min() - 1e-12
     assert turn.max() <= offsets.max() + 1e-12
+
+
+def test_a_reference_of_few_knots_keeps_its_held_headings_between_them(tmp_path: Path) -> None:
+    """A hand-drawn polyline has a knot only at each corner: the headings the coils can hold,
+    found at HELD_SAMPLES poses along it, are the planned reference's between its knots too
+    (they once reached the planner only where a knot fell, so it followed the reference's
+    own headings). The planned headings at the samples are the reference's plus the
+    smoothed offsets, and the run's warning states them."""
+    from magrun.runner import _held_heading_warning
+    from magrun.scene import out_and_back
+
+    (tmp_path / "tri.yaml").write_text(TRI)
+    folder = import_mpem(tmp_path / "tri.yaml", tmp_path / "tri", 0.0, (0.0, 0.0), 10e-3)
+    model = load_system(folder).models[1]
+    reference = out_and_back(np.array([[-4, -3], [-1, 3], [2, -3], [4, 2]]) * 1e-3, 1e-3)
+    assert len(reference.t) < HELD_SAMPLES / 4  # few knots
+    held = held_reference(model, ROBOT, 10.0, reference)
+    assert held.offsets.any()
+    t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
+    turn = held.trajectory.pose(t)[:, 2] - reference.pose(t)[:, 2]
+    half = HELD_SMOOTHING // 2
+    smooth = np.convolve(np.pad(held.offsets, half, mode="edge"), np.ones(HELD_SMOOTHING), "valid")
+    assert_allclose(turn, smooth / HELD_SMOOTHING, rtol=0, atol=1e-9)
+    assert np.degrees(np.abs(turn).max()) > 4.0  # a 5° step at least, smoothed
+    (warning,) = _held_heading_warning(held.trajectory, reference)
+    assert "cannot hold the reference's heading" in warning
+    assert _held_heading_warning(reference, reference) == []
 
 
 def test_a_reference_the_coils_hold_is_planned_as_it_is() -> None:

@@ -382,7 +382,8 @@ def held_reference(
     that velocity :data:`HELD_SPARE` times over, or the nearest heading that they do (5°
     steps, the side of the previous pose's offset first), or the previous pose's offset
     where none does; the offsets are smoothed (a moving average over :data:`HELD_SMOOTHING`
-    poses) and added to the reference's headings."""
+    poses) and added to the reference's headings, on the reference's times and the
+    samples' together."""
     n = model.coils.n_channels
     limits = _limits(max_current, n)
     t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
@@ -416,6 +417,9 @@ def held_reference(
     half = HELD_SMOOTHING // 2
     padded = np.pad(offsets, half, mode="edge")
     smooth = np.convolve(padded, np.ones(HELD_SMOOTHING) / HELD_SMOOTHING, mode="valid")
-    poses_out = reference.poses.copy()
-    poses_out[:, 2] += np.interp(reference.t, t, smooth)
-    return HeldReference(Trajectory(reference.t.copy(), poses_out), offsets, factors)
+    # on the reference's own times and the samples': a reference of a few knots (a polyline
+    # drawn by hand) would otherwise keep the offsets only where its knots fall
+    t_out = np.union1d(reference.t, t)
+    poses_out = reference.pose(t_out)
+    poses_out[:, 2] += np.interp(t_out, t, smooth)
+    return HeldReference(Trajectory(t_out, poses_out), offsets, factors)
