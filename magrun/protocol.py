@@ -197,6 +197,19 @@ class OutAndBack(_Strict):
         3.0, description="Time to turn round (180°) in place, s."
     )
 
+    @field_validator("path")
+    @classmethod
+    def _two_places(cls, path: Any) -> Any:
+        """A path goes somewhere: at least 2 distinct points (a point repeated counts once)."""
+        if isinstance(path, list):
+            # as scene.out_and_back keeps them: a point within 1e-9 mm of the one before is it
+            distinct = [p for k, p in enumerate(path) if k == 0 or math.dist(p, path[k - 1]) > 1e-9]
+            if len(distinct) < 2:
+                raise ValueError(
+                    f"a path needs at least 2 distinct points; these {len(path)} are one place"
+                )
+        return path
+
 
 Workspace = Annotated[OpenWorkspace | PhantomWorkspace, Field(discriminator="kind")]
 TrajectorySpec = Annotated[SCurve | OutAndBack, Field(discriminator="kind")]
