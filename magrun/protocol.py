@@ -48,6 +48,7 @@ from pydantic import (
 
 from magrun.control import METHODS
 from magrun.rigs.plant import Imperfections
+from magrun.scene import distinct_places
 
 if TYPE_CHECKING:
     from magrun.robot import RobotParams
@@ -201,13 +202,11 @@ class OutAndBack(_Strict):
     @classmethod
     def _two_places(cls, path: Any) -> Any:
         """A path goes somewhere: at least 2 distinct points (a point repeated counts once)."""
-        if isinstance(path, list):
-            # as scene.out_and_back keeps them: a point within 1e-9 mm of the one before is it
-            distinct = [p for k, p in enumerate(path) if k == 0 or math.dist(p, path[k - 1]) > 1e-9]
-            if len(distinct) < 2:
-                raise ValueError(
-                    f"a path needs at least 2 distinct points; these {len(path)} are one place"
-                )
+        # the places scene.out_and_back keeps (mm here, m there)
+        if isinstance(path, list) and np.count_nonzero(distinct_places(np.array(path) * 1e-3)) < 2:
+            raise ValueError(
+                f"a path needs at least 2 distinct points; these {len(path)} are one place"
+            )
         return path
 
 

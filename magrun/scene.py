@@ -55,6 +55,13 @@ class Trajectory:
         return np.stack([np.interp(tq, self.t, self.poses[:, k]) for k in range(3)], axis=-1)
 
 
+def distinct_places(points: ArrayLike) -> NDArray[np.bool_]:
+    """Which of a polyline's points (n, 2), m, to keep: each one more than 1e-12 m (a
+    rounding error) from the one before it; a repeated point is one place."""
+    p = np.asarray(points, dtype=np.float64)
+    return np.concatenate([[True], np.hypot(*np.diff(p, axis=0).T) > 1e-12])
+
+
 def _path_to_trajectory(points: FloatArray, headings: FloatArray, speed: float) -> Trajectory:
     seg = np.hypot(*np.diff(points, axis=0).T)
     s = np.concatenate([[0.0], np.cumsum(seg)])
@@ -100,7 +107,7 @@ def s_trajectory(
     points = np.concatenate(pts) + np.array([cx, cy])
     headings = np.concatenate(hdg)
     # drop the duplicated joints so that time stays strictly increasing
-    keep = np.concatenate([[True], np.hypot(*np.diff(points, axis=0).T) > 1e-12])
+    keep = distinct_places(points)
     return _path_to_trajectory(points[keep], headings[keep], speed)
 
 
@@ -116,8 +123,7 @@ def out_and_back(
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) < 2:
         raise ValueError("out_and_back needs a path of at least 2 points (n, 2)")
-    keep = np.concatenate([[True], np.hypot(*np.diff(pts, axis=0).T) > 1e-12])
-    pts = pts[keep]
+    pts = pts[distinct_places(pts)]
     d = np.diff(pts, axis=0)
     heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
     heading = np.append(heading, heading[-1])  # vertex i takes segment i's direction
