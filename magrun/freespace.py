@@ -372,20 +372,29 @@ class FreeSpace:
         ys = np.arange(lo[1], hi[1] + pitch, pitch)
         grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
         segs = np.concatenate([s for s, _ in self._segments.values()])
-        a, b = segs[None, :, 0], segs[None, :, 1]
         # centres inside, at least a radius from every wall: the only ones a body can have
         centres = grid[self.inside(grid)]
-        centres = centres[_point_segment(centres[:, None], a, b).min(axis=1) >= self.radius]
+        dist = _point_segment(centres[:, None], segs[None, :, 0], segs[None, :, 1])
+        clear = dist.min(axis=1) >= self.radius
+        centres, dist = centres[clear], dist[clear]
+        # a wall farther from a centre than the body reaches (its half axis and a radius, and
+        # a nanometre for rounding) is farther than a radius from its axis at any heading:
+        # only the (centre, wall) pairs within reach are measured
+        limit = self.radius * 1.001
+        pair, wall = np.nonzero(dist <= limit + self.half_axis + 1e-9)
+        a, b = segs[wall, 0], segs[wall, 1]
         out = []
         for th in np.arange(headings) * math.pi / headings:
             axis = np.array([math.cos(th), math.sin(th)]) * self.half_axis
-            p0, p1 = (centres - axis)[:, None], (centres + axis)[:, None]
+            p0, p1 = centres[pair] - axis, centres[pair] + axis
             d = np.minimum.reduce([
                 _point_segment(p0, a, b), _point_segment(p1, a, b),
                 _point_segment(a, p0, p1), _point_segment(b, p0, p1),
             ])  # fmt: skip
             d = np.where(segments_cross(p0, p1, a, b), 0.0, d)
-            ok = d.min(axis=1) >= self.radius * 1.001
+            touching = np.zeros(len(centres), dtype=bool)
+            touching[pair[d < limit]] = True
+            ok = ~touching
             out.append(np.column_stack([centres[ok], np.full(int(ok.sum()), th)]))
         grid = np.concatenate(out)
         if not len(grid):

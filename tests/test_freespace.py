@@ -60,6 +60,49 @@ def test_projection_keeps_a_pose_that_fits(spine: FreeSpace) -> None:
     np.testing.assert_array_equal(spine.project(pose), pose)
 
 
+def _star(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    angles = np.sort(rng.uniform(0, 2 * math.pi, n))
+    radii = rng.uniform(0.004, 0.03, n)
+    points = np.column_stack([radii * np.cos(angles), radii * np.sin(angles)])
+    return np.vstack([points, points[:1]])
+
+
+@pytest.mark.parametrize("where", ["spine", "square", "star"])
+def test_the_fallback_grid_holds_every_pose_that_fits_and_no_other(spine, where) -> None:
+    """The grid of poses that fit (the projection's last resort; the docstring's pitch, 16
+    headings over π), checked pose by pose with :meth:`FreeSpace.clearance`, which measures
+    the body against the walls in its own way: a candidate is in the grid exactly where the
+    body clears every wall by a thousandth of its radius (poses within 1 nm of that are not
+    judged)."""
+    robot = load_robots()["drug_delivery"]
+    fs = {
+        "spine": spine,
+        "square": FreeSpace.square(0.006, robot.length, robot.diameter),
+        "star": FreeSpace({"a": _star(40, 5)}, None, robot.length, robot.diameter),
+    }[where]
+    outline = fs.walls().segments[:, 0]
+    lo, hi = outline.min(axis=0), outline.max(axis=0)
+    pitch = max(0.5e-3, float(np.max(hi - lo)) / 60)
+    xs, ys = np.arange(lo[0], hi[0] + pitch, pitch), np.arange(lo[1], hi[1] + pitch, pitch)
+    centres = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    centres = centres[fs.inside(centres)]
+    grid = {(round(x / pitch), round(y / pitch), round(t * 16 / math.pi)) for x, y, t in
+            fs._fitting}  # fmt: skip
+    for pose in fs._fitting[::3]:  # every third: a second's work
+        assert fs.clearance(pose) - 0.001 * fs.radius > -1e-9, pose
+    judged = inside = 0
+    for x, y in centres[::3]:
+        for k in range(16):
+            margin = fs.clearance([x, y, k * math.pi / 16]) - 0.001 * fs.radius
+            if abs(margin) < 1e-9:
+                continue
+            judged += 1
+            inside += margin > 0
+            assert ((round(x / pitch), round(y / pitch), k) in grid) == (margin > 0), (x, y, k)
+    assert 0 < inside < judged  # poses that fit and poses that do not were both judged
+
+
 def test_nearest_for_one_point_is_the_nearest_for_many_to_the_last_bit(spine: FreeSpace) -> None:
     """The one-point path (the NMPC's start, every tick) gives the vectorised one's nearest
     point and normal bit for bit: inside and outside the outline, on a vertex's normal, and
