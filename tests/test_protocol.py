@@ -34,6 +34,25 @@ def test_the_five_paper_protocols_are_shipped() -> None:
     assert {p.stem for p in PROTOCOLS} == PAPER | OURS
 
 
+def test_yaml_is_read_as_pyyaml_reads_it_with_the_tree_as_written() -> None:
+    """The one YAML reader (libyaml's parser, parsed once): the data of every YAML file in
+    the repository and of a document with anchors and a merge key is what PyYAML's
+    pure-Python safe loader gives; the node tree keeps the merge key where it was written
+    (the lines of errors), and a key a merge overrides is not taken for one given twice."""
+    from magrun.yamlio import safe_yaml
+
+    merged = "base: &b {x: 1, y: 2}\nmerged:\n  <<: *b\n  y: 3\nlist: [1, 2.5, null, true, '7']\n"
+    files = [p for p in ROOT.rglob("*.yaml") if not {".venv", "bad_protocols"} & set(p.parts)]
+    assert len(files) > 15  # protocols, phantoms, systems, robots, plants
+    for text in [merged, *(p.read_text() for p in files)]:
+        _, data = safe_yaml(text, "t.yaml")
+        assert data == yaml.load(text, Loader=yaml.SafeLoader)
+    root, data = safe_yaml(merged, "t.yaml")
+    assert data["merged"] == {"x": 1, "y": 3}
+    keys = root.value[1][1].value
+    assert [(k.value, k.start_mark.line + 1) for k, _ in keys] == [("<<", 3), ("y", 4)]
+
+
 @pytest.mark.parametrize("path", PROTOCOLS, ids=lambda p: p.stem)
 def test_shipped_protocol_validates_and_matches_the_json_schema(path: Path) -> None:
     protocol = load_protocol(path)
