@@ -167,6 +167,18 @@ def _serve(tmp_path: Path, *args: str) -> tuple[subprocess.Popen, str]:
     return proc, line.split()[-1]
 
 
+def _one_trial(tmp_path: Path) -> Path:
+    """The tiny protocol cut to one trial (one method, one rate): for the checks that any
+    trial answers."""
+    text = TINY.read_text()
+    text = text.replace("methods: [baseline3, baseline2]", "methods: [baseline3]")
+    text = text.replace("tracking_rate_hz: [5, 25.5]", "tracking_rate_hz: [25.5]")
+    path = tmp_path / "tiny.yaml"
+    path.write_text(text)
+    assert len(load_protocol(path).expand()) == 1
+    return path
+
+
 def _stop(proc: subprocess.Popen) -> None:
     proc.terminate()
     proc.wait(10)
@@ -215,7 +227,8 @@ def test_run_says_when_the_loop_ran_without_real_time_priority(
     proc, url = _serve(tmp_path)
     try:
         out = tmp_path / "out"
-        args = ["run", str(TINY), "--out", str(out), "--rig", "hardware", "--driver", url]
+        args = ["run", str(_one_trial(tmp_path)), "--out", str(out), "--rig", "hardware",
+                "--driver", url]  # fmt: skip
         result = CliRunner().invoke(cli, args)
     finally:
         _stop(proc)
@@ -264,7 +277,7 @@ def test_hardware_needs_a_driver_and_one_job(tmp_path: Path) -> None:
         run_protocol(protocol, tmp_path / "c", rig=HardwareSpec("can://bus0"))
 
 
-def test_bench_rig_json() -> None:
+def test_bench_rig_json(tmp_path: Path) -> None:
     """The figures add up: every trial ok with latencies, each stall caught after the timeout.
     The reaction is timed from the acknowledgement's arrival, which the emulator sent after
     it armed the watchdog: on a loaded machine that transit and the poller's wake-up make it
@@ -274,10 +287,11 @@ def test_bench_rig_json() -> None:
 
     from magrun.cli import cli
 
-    args = ["bench", "rig", str(TINY), "--stalls", "2", "--watchdog-ms", "50", "--json"]
-    result = CliRunner().invoke(cli, args)
+    args = ["bench", "rig", str(_one_trial(tmp_path)), "--stalls", "2", "--watchdog-ms", "50"]
+    result = CliRunner().invoke(cli, [*args, "--json"])
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
+    assert len(doc["run"]["trials"]) == 1
     for t in doc["run"]["trials"]:
         assert t["status"] == "ok"
         assert t["latency_median_ms"] <= t["latency_p99_ms"] <= t["latency_max_ms"]

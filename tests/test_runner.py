@@ -26,7 +26,7 @@ from magrun.protocol import load_protocol
 from magrun.recordings.writer import TOPICS, RecordingSetup, TrialRecorder, yaw_of
 from magrun.records import Tick
 from magrun.rigs.sim import SimRig
-from magrun.runner import RunError, local_executor, ray_executor, run_protocol
+from magrun.runner import RunError, ray_executor, run_protocol
 from magrun.scene import s_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -170,17 +170,6 @@ def test_rerun_decodes_the_mcap_natively(tiny_run: Any) -> None:
     reader = McapReader(out / "tiny" / manifest["trials"][0]["mcap"])
     entities = {str(chunk.entity_path) for chunk in reader.stream()}
     assert {"/robot/pose/actual", "/camera/image", "/coils/currents"} <= entities
-
-
-def test_same_seed_gives_the_same_messages_whatever_the_job_count(
-    tiny_run: Any, tmp_path: Path
-) -> None:
-    out1, manifest = tiny_run
-    run_protocol(load_protocol(TINY), tmp_path, executor=local_executor(2))
-    for e in manifest["trials"]:
-        _, a, _ = read_mcap(out1 / "tiny" / e["mcap"])
-        _, b, _ = read_mcap(tmp_path / "tiny" / e["mcap"])
-        assert a == b
 
 
 def test_ray_trials_on_two_nodes_come_back_to_the_drivers_folder(
@@ -843,7 +832,8 @@ def test_a_declared_latency_gives_the_same_recordings_under_load_and_with_any_jo
     """The same protocol and seed with the default declared latency (camera tracking, two
     methods, two rates): run alone in one process, then with --jobs 2 beside two processes
     that keep every core busy. Every pose, current and status message is identical (the
-    status without its wall-clock fields)."""
+    status without its wall-clock fields): neither the job count nor the load changes a
+    recording."""
     text = TINY.read_text().replace("latency_ms: none", "latency_ms: 5")
     assert "latency_ms: 5" in text
     path = tmp_path / "tiny.yaml"
