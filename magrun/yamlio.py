@@ -285,10 +285,10 @@ def _parse(text: str) -> tuple[yaml.Node | None, Any]:
         loader.dispose()
     if root is None:
         return None, None
-    loader = _LOADER(text) if "<<" in text else _LOADER("")
+    merges = "<<" in text
+    loader = _LOADER(text if merges else "")
     try:
-        tree = loader.get_single_node() if "<<" in text else root
-        return root, loader.construct_document(tree)
+        return root, loader.construct_document(loader.get_single_node() if merges else root)
     finally:
         loader.dispose()
 

@@ -139,9 +139,9 @@ def pose_capability(
     b_ub /= field_scale
     cost = np.zeros(n + 1)
     cost[n] = -1.0
-    # HiGHS through scipy's milp with every variable continuous: the LP linprog solves, by
-    # the same solver (the same optima on 5472 LPs of the shipped systems and protocols,
-    # speed factors bit for bit), with half of linprog's input checks' overhead
+    # HiGHS through scipy's milp, every variable continuous: the LP linprog solves, by the
+    # same solver (on 5472 LPs of the shipped systems and protocols the same speed factors,
+    # bit for bit), in about half the time (linprog's input checks are most of a call)
     result = milp(
         cost,
         constraints=LinearConstraint(
