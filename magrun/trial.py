@@ -402,19 +402,19 @@ INTEGRAL_TIME = 0.1
 
 def _remembered(
     cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory | None,
-    robot: RobotParams, compute: Callable[[PlanarFieldModel], Any],
+    robot: RobotParams, compute: Callable[[Callable[[], PlanarFieldModel]], Any],
 ) -> Any:  # fmt: skip
-    """``compute(the system's lookup-table model)``, remembered in ``cache`` (at most 32) by
-    system, limits, robot and trajectory (None: an answer for the whole workspace): a test
-    session or a campaign runs the same protocol many times, and each answer costs hundreds
-    of linear programs."""
+    """``compute(model)``, ``model()`` giving the system's lookup-table model, remembered in
+    ``cache`` (at most 32) by system, limits, robot and trajectory (None: an answer for the
+    whole workspace): a test session or a campaign runs the same protocol many times, and
+    each answer costs hundreds of linear programs."""
     key = (coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot)) + (
         () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
     )
     if key not in cache:
         if len(cache) >= 32:
             cache.clear()
-        cache[key] = compute(load_system(coils.folder).models[1])
+        cache[key] = compute(lambda: load_system(coils.folder).models[1])
     return cache[key]
 
 
@@ -562,14 +562,26 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
     their workspace: :attr:`~magrun.field.capability.WorkspaceCapability.typical_force`, and
     the robot's moment times :attr:`~magrun.field.capability.WorkspaceCapability.
     typical_field` (:func:`~magrun.field.capability.workspace_capability` on the system's
-    lookup-table model; ~2 s, remembered in the process)."""
+    lookup-table model; ~1 s, remembered in the process and in the machine's cache:
+    :mod:`magrun.answers`)."""
+    from magrun.answers import files_digest, remembered
     from magrun.field.capability import workspace_capability
 
-    def compute(model: PlanarFieldModel) -> tuple[float, float]:
-        cap = workspace_capability(
-            model, robot, coils.max_current, model.coils.workspace_half_width
+    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[float, float]:
+        def numbers() -> tuple[float, float]:
+            model = lut()
+            cap = workspace_capability(
+                model, robot, coils.max_current, model.coils.workspace_half_width
+            )
+            return cap.typical_force, cap.typical_field * robot.moment
+
+        inputs = (
+            files_digest(coils.folder).encode(),
+            np.atleast_1d(coils.max_current).tobytes(),
+            repr(robot).encode(),
         )
-        return cap.typical_force, cap.typical_field * robot.moment
+        force, torque = remembered("typical_wrench", inputs, numbers)
+        return force, torque
 
     return _remembered(_WRENCH, coils, None, robot, compute)
 
@@ -585,7 +597,7 @@ def planned_reference(
 
     held = _remembered(
         _PLANNED, coils, reference, robot,
-        lambda model: held_reference(model, robot, coils.max_current, reference),
+        lambda model: held_reference(model(), robot, coils.max_current, reference),
     )  # fmt: skip
     # the cached trajectory stands for this reference: the same object where unchanged
     same = held.trajectory is reference or not held.offsets.any()
@@ -603,7 +615,9 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
 
     reach = _remembered(
         _REACH, coils, reference, robot,
-        lambda model: trajectory_capability(model, robot, coils.max_current, reference, 200, True),
+        lambda model: trajectory_capability(
+            model(), robot, coils.max_current, reference, 200, True
+        ),
     )  # fmt: skip
     if reach.feasible:
         return

@@ -1,0 +1,97 @@
+"""Answers kept in the machine's cache between processes (magrun.answers): computed once,
+read back to the last bit, computed again for other inputs, other code or a damaged file."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from types import SimpleNamespace
+from typing import cast
+
+import pytest
+
+from magrun import answers, trial
+from magrun.field.coils import CoilSystem
+from magrun.robot import load_robot
+
+
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path))
+    return tmp_path / "answers"
+
+
+def _counted(numbers: tuple[float, ...]):
+    calls: list[int] = []
+
+    def compute() -> tuple[float, ...]:
+        calls.append(1)
+        return numbers
+
+    return compute, calls
+
+
+def test_an_answer_is_computed_once_and_read_back_to_the_last_bit(cache: Path) -> None:
+    numbers = (math.pi / 7, 1e-300, -2.5e17, 0.1 + 0.2)
+    compute, calls = _counted(numbers)
+    assert answers.remembered("t", [b"a", b"b"], compute) == numbers
+    assert answers.remembered("t", [b"a", b"b"], compute) == numbers  # from the file
+    assert len(calls) == 1
+    assert len(list(cache.glob("t-*.json"))) == 1
+    assert not list(cache.glob(".*"))  # no temporary file left
+    answers.remembered("t", [b"ab"], compute)  # other inputs (not the same bytes joined)
+    answers.remembered("t", [b"b", b"a"], compute)
+    assert len(calls) == 3
+
+
+def test_changed_code_or_a_damaged_file_computes_it_again(
+    cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    compute, calls = _counted((1.5, 2.5))
+    answers.remembered("t", [b"x"], compute)
+    (path,) = cache.glob("t-*.json")
+    for damaged in ["[1.5, ", '["1.5", 2.5]', "[NaN, 1.0]", "{}", "[" * 100_000 + "]" * 100_000]:
+        path.write_text(damaged)
+        assert answers.remembered("t", [b"x"], compute) == (1.5, 2.5)
+    assert len(calls) == 6
+    assert path.read_text() == "[1.5, 2.5]"  # replaced by the computed answer
+    monkeypatch.setattr(answers, "package_digest", lambda: "another version of magrun")
+    answers.remembered("t", [b"x"], compute)
+    assert len(calls) == 7
+    compute_nan, _ = _counted((math.nan,))
+    assert math.isnan(answers.remembered("n", [b"x"], compute_nan)[0])
+    assert not list(cache.glob("n-*"))  # not kept: a NaN is no answer to read back
+
+
+def test_a_system_file_changed_by_content_is_another_input(tmp_path: Path) -> None:
+    folder = tmp_path / "system"
+    folder.mkdir()
+    (folder / "maps.txt").write_text("1 2 3")
+    before = answers.files_digest(folder)
+    (folder / "maps.txt").write_text("1 2 4")
+    assert answers.files_digest(folder) != before
+    assert answers.files_digest(folder / "maps.txt") == answers.files_digest(folder)
+    assert answers.files_digest(None) != before
+    os.mkfifo(folder / "pipe")  # not a file: not read (reading it would wait for a writer)
+    assert answers.files_digest(folder) == answers.files_digest(folder / "maps.txt")
+
+
+def test_the_typical_wrench_from_the_cache_is_the_computed_one(
+    cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A second process's answer (the process's own memory cleared) comes from the file, not
+    the linear programs, and equals the computed one exactly; other limits are computed."""
+    coils, robot = CoilSystem.load(), load_robot("drug_delivery")
+    monkeypatch.setattr(trial, "_WRENCH", {})
+    computed = trial.typical_wrench(coils, robot)
+    monkeypatch.setattr(trial, "_WRENCH", {})
+
+    def no_lp(*args: object, **kwargs: object) -> None:
+        raise AssertionError("computed again")
+
+    monkeypatch.setattr("magrun.field.capability.workspace_capability", no_lp)
+    assert trial.typical_wrench(coils, robot) == computed
+    weaker = cast(CoilSystem, SimpleNamespace(folder=None, max_current=coils.max_current / 2))
+    with pytest.raises(AssertionError, match="computed again"):
+        trial.typical_wrench(weaker, robot)
