@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magrun.phantom import segment_distances, segments_cross
+from magrun.phantom import point_to_segments, segment_distances, segments_cross
 from magrun.scene import Walls, capsule_disks
 
 FloatArray = NDArray[np.float64]
@@ -374,7 +374,7 @@ class FreeSpace:
         segs = np.concatenate([s for s, _ in self._segments.values()])
         # centres inside, at least a radius from every wall: the only ones a body can have
         centres = grid[self.inside(grid)]
-        dist = _point_segment(centres[:, None], segs[None, :, 0], segs[None, :, 1])
+        dist = point_to_segments(centres[:, None], segs[None, :, 0], segs[None, :, 1])
         clear = dist.min(axis=1) >= self.radius
         centres, dist = centres[clear], dist[clear]
         # a wall farther from a centre than the body reaches (its half axis and a radius, and
@@ -388,8 +388,8 @@ class FreeSpace:
             axis = np.array([math.cos(th), math.sin(th)]) * self.half_axis
             p0, p1 = centres[pair] - axis, centres[pair] + axis
             d = np.minimum.reduce([
-                _point_segment(p0, a, b), _point_segment(p1, a, b),
-                _point_segment(a, p0, p1), _point_segment(b, p0, p1),
+                point_to_segments(p0, a, b), point_to_segments(p1, a, b),
+                point_to_segments(a, p0, p1), point_to_segments(b, p0, p1),
             ])  # fmt: skip
             d = np.where(segments_cross(p0, p1, a, b), 0.0, d)
             touching = np.zeros(len(centres), dtype=bool)
@@ -435,7 +435,7 @@ class FreeSpace:
         axis = np.array([math.cos(p[2]), math.sin(p[2])])
         c = p[:2] + capsule_disks(self.half_axis, r)[:, None] * axis  # (m, 2)
         a, ab, ab2, _ = self._group(tuple(self.boundaries))
-        near = _point_segment(p[:2], a, a + ab) <= self.half_axis + r + reach
+        near = point_to_segments(p[:2], a, a + ab) <= self.half_axis + r + reach
         a, ab, ab2 = a[near], ab[near], ab2[near]
         if not len(a):
             return -reach, reach
@@ -493,10 +493,3 @@ class FreeSpace:
         near = centre <= centre.min() + 2 * self.half_axis + 1e-12
         segs = np.stack([a[near], a[near] + ab[near]], axis=1)
         return float(segment_distances(ends[0], ends[1], segs).min() - self.radius)
-
-
-def _point_segment(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Distances from points ``p`` to segments ``a``–``b``, broadcast over leading axes."""
-    ab = b - a
-    u = np.clip(np.sum((p - a) * ab, axis=-1) / np.maximum(np.sum(ab * ab, axis=-1), 1e-30), 0, 1)
-    return np.hypot(*np.moveaxis(p - (a + u[..., None] * ab), -1, 0))

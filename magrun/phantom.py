@@ -213,17 +213,17 @@ class Phantom:
 def segment_distances(p0: FloatArray, p1: FloatArray, segs: FloatArray) -> FloatArray:
     """Distance between segment ``p0``–``p1`` and each segment of ``segs`` (n, 2, 2)."""
     a, b = segs[:, 0], segs[:, 1]
-    d = np.minimum(_point_to_segments(p0, a, b), _point_to_segments(p1, a, b))
+    d = np.minimum(point_to_segments(p0, a, b), point_to_segments(p1, a, b))
     if not np.allclose(p0, p1):
         one_a, one_b = p0[None, :], p1[None, :]
-        d = np.minimum(d, _point_to_segments(a, one_a, one_b))
-        d = np.minimum(d, _point_to_segments(b, one_a, one_b))
+        d = np.minimum(d, point_to_segments(a, one_a, one_b))
+        d = np.minimum(d, point_to_segments(b, one_a, one_b))
         d = np.where(segments_cross(p0, p1, a, b), 0.0, d)  # proper crossings touch
     return d
 
 
-def _point_to_segments(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    """Distances from point(s) ``p`` to segment(s) ``a``–``b`` (broadcast over rows)."""
+def point_to_segments(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distances from points ``p`` to segments ``a``–``b``, broadcast over leading axes."""
     ab = b - a
     den = np.maximum(np.sum(ab * ab, axis=-1), 1e-30)
     u = np.clip(np.sum((p - a) * ab, axis=-1) / den, 0.0, 1.0)

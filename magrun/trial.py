@@ -400,6 +400,12 @@ PAPER_SPEED_FACTOR = 8.2
 INTEGRAL_TIME = 0.1
 
 
+def _limits_and_robot(coils: CoilSystem, robot: RobotParams) -> tuple[bytes, bytes]:
+    """What an answer about ``coils`` depends on besides the system's files: the current
+    limits and the robot (every field's repr)."""
+    return np.atleast_1d(coils.max_current).tobytes(), repr(robot).encode()
+
+
 def _remembered(
     cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory | None,
     robot: RobotParams, compute: Callable[[Callable[[], PlanarFieldModel]], Any],
@@ -408,7 +414,7 @@ def _remembered(
     ``cache`` (at most 32) by system, limits, robot and trajectory (None: an answer for the
     whole workspace): a test session or a campaign runs the same protocol many times, and
     each answer costs hundreds of linear programs."""
-    key = (coils.folder, np.atleast_1d(coils.max_current).tobytes(), repr(robot)) + (
+    key = (coils.folder, *_limits_and_robot(coils, robot)) + (
         () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
     )
     if key not in cache:
@@ -575,11 +581,7 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
             )
             return cap.typical_force, cap.typical_field * robot.moment
 
-        inputs = (
-            files_digest(coils.folder).encode(),
-            np.atleast_1d(coils.max_current).tobytes(),
-            repr(robot).encode(),
-        )
+        inputs = (files_digest(coils.folder).encode(), *_limits_and_robot(coils, robot))
         force, torque = remembered("typical_wrench", inputs, numbers)
         return force, torque
 

@@ -333,13 +333,13 @@ def test_play_in_the_square_is_the_distance_to_the_walls() -> None:
 def _disks_clear(fs: FreeSpace, pose: np.ndarray) -> float:
     """Least distance of the body's disks (as play places them) to any wall, less the radius:
     a brute-force check over every segment."""
-    from magrun.freespace import _point_segment
+    from magrun.phantom import point_to_segments
     from magrun.scene import capsule_disks
 
     axis = np.array([math.cos(pose[2]), math.sin(pose[2])])
     disks = pose[:2] + capsule_disks(fs.half_axis, fs.radius)[:, None] * axis
     segs = fs.walls().segments
-    d = _point_segment(disks[:, None, :], segs[None, :, 0], segs[None, :, 1])
+    d = point_to_segments(disks[:, None, :], segs[None, :, 0], segs[None, :, 1])
     return float(d.min() - fs.radius)
 
 
