@@ -19,44 +19,24 @@ Deleting the folder is always safe.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
-import os
-import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
-from magrun.compiled import cache_dir
-
-PACKAGE = Path(__file__).resolve().parent
-
-
-def _digest(root: Path, paths: Iterable[Path]) -> str:
-    h = hashlib.sha256()
-    for path in paths:
-        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
-    return h.hexdigest()
-
-
-@functools.cache
-def package_digest() -> str:
-    """SHA-256 of every file of the installed magrun package (its code and its shipped data:
-    the paper rig's maps, the robots; compiled caches left out)."""
-    files = (p for p in PACKAGE.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
-    return _digest(PACKAGE, sorted(files))
+from magrun.compiled import PACKAGE, cache_dir, package_digest, tree_digest, write_cache_file
 
 
 def files_digest(path: str | Path | None) -> str:
     """SHA-256 of the files under folder ``path``, or of file ``path`` (a coil system's YAML
     of the paper's kind); of nothing for None (the paper's rig: the package's own data)."""
     if path is None:
-        return _digest(PACKAGE, [])
+        return tree_digest(PACKAGE, [])
     p = Path(path)
     if p.is_dir():
-        return _digest(p, sorted(f for f in p.rglob("*") if f.is_file()))
-    return _digest(p.parent, [p])
+        return tree_digest(p, sorted(f for f in p.rglob("*") if f.is_file()))
+    return tree_digest(p.parent, [p])
 
 
 def remembered(
@@ -83,16 +63,4 @@ def remembered(
 
 
 def _write(path: Path, answer: tuple[float, ...]) -> None:
-    """``answer`` into ``path`` through a temporary file renamed into place; where the cache
-    cannot be written the answer is still right, only not kept."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, part = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".part")
-    except OSError:
-        return
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(list(answer), fh)  # each float's repr: read back to the last bit
-        os.replace(part, path)
-    except OSError:
-        Path(part).unlink(missing_ok=True)
+    write_cache_file(path, json.dumps(list(answer)))  # each float's repr: read back exactly

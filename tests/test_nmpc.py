@@ -8,9 +8,12 @@ currents plan and the objective, with constraints inactive and active.
 
 from __future__ import annotations
 
+import hashlib
 import math
+import tempfile
 import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -109,6 +112,116 @@ def test_compiled_function_matches_and_is_cached(tmp_path, monkeypatch) -> None:
     y = ca.SX.sym("x", 3)
     compiled_mod.compiled(ca.Function("magrun_test_square", [y], [ca.cos(y) * y]))
     assert len(list((tmp_path / "casadi").glob("*.so"))) == 2  # new code, new key
+
+
+def test_a_library_is_found_by_its_graph_without_generating_code(tmp_path, monkeypatch) -> None:
+    """The cache's entry for a function's graph names the library its code compiled to: the
+    same graph again (a new Function object) loads it without generating code; a constant
+    changed in its last bit, or another version of magrun, generates code again; an entry
+    that is damaged, names a library elsewhere or one that is gone is passed over and
+    written again."""
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(tmp_path))
+    x = ca.SX.sym("x", 2)
+    first = compiled_mod.compiled(ca.Function("magrun_test_scale", [x], [0.1 * x]))
+    (library,) = (tmp_path / "casadi").glob("magrun_test_scale-*.so")
+    (entry,) = (tmp_path / "casadi" / "known").glob("magrun_test_scale-*")
+    assert entry.read_text().strip() == library.name
+    generated: list[str] = []
+    real = ca.CodeGenerator
+
+    def counting(*args, **kwargs):
+        generated.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(compiled_mod.ca, "CodeGenerator", counting)
+    y = ca.SX.sym("x", 2)
+    again = compiled_mod.compiled(ca.Function("magrun_test_scale", [y], [0.1 * y]))
+    assert generated == []
+    assert_allclose(np.asarray(again([1.0, -2.0])).ravel(), np.asarray(first([1.0, -2.0])).ravel())
+    nudged = ca.Function("magrun_test_scale", [y], [np.nextafter(0.1, 1.0) * y])
+    compiled_mod.compiled(nudged)
+    assert len(generated) == 1  # another constant: another graph, generated and compiled
+    assert len(list((tmp_path / "casadi").glob("magrun_test_scale-*.so"))) == 2
+
+    elsewhere = "../magrun_test_scale-0123456789abcdef0123.so"
+    gone = "magrun_test_scale-0123456789abcdef0123.so"
+    for damaged in ("", "\x00\xff garbage", elsewhere, gone, "nmpc_rti-0123456789abcdef0123.so"):
+        entry.write_text(damaged, encoding="latin-1")
+        generated.clear()
+        compiled_mod.compiled(ca.Function("magrun_test_scale", [y], [0.1 * y]))
+        assert generated == ["magrun_test_scale.c"], damaged
+        assert entry.read_text().strip() == library.name  # written again, as it should read
+
+    monkeypatch.setattr(compiled_mod, "package_digest", lambda: "another version of magrun")
+    generated.clear()
+    compiled_mod.compiled(ca.Function("magrun_test_scale", [y], [0.1 * y]))
+    assert generated == ["magrun_test_scale.c"]
+    assert len(list((tmp_path / "casadi" / "known").glob("magrun_test_scale-*"))) == 3
+
+
+class _Generated(Exception):
+    """What a kernel's cache key and generated source were (the test stops there)."""
+
+
+def test_the_kernels_fingerprint_separates_what_its_source_separates(
+    zernike_model, lut_model, magnet_robot, monkeypatch
+) -> None:
+    """The cache finds the RTI's kernel by the graph it is generated from: configurations
+    whose generated C differs (a weight, the horizon, the soft constraints' form, no heading
+    term, the field-model error, the lookup-table model, another robot, a corridor) must have
+    different fingerprints, and the same configuration built twice the same one, or the cache
+    would load another controller's kernel, or never hit."""
+    from magrun.control import rti_kernel
+    from magrun.freespace import FreeSpace
+    from magrun.phantom import load_phantom
+    from magrun.robot import load_robot
+
+    if rti_kernel.hpipm_build() is None:
+        pytest.skip("no HPIPM build to generate the kernel for")
+
+    def recorded(name, write_source, *, fingerprint=None, **_):
+        with tempfile.TemporaryDirectory() as tmp:
+            source = write_source(Path(tmp)).read_bytes()
+        raise _Generated(fingerprint, hashlib.sha256(source).hexdigest())
+
+    monkeypatch.setenv("MAGRUN_COMPILE", "1")
+    monkeypatch.setattr(compiled_mod, "compilation_enabled", lambda: True)
+    monkeypatch.setattr(rti_kernel, "shared_library", recorded)
+    capsule = load_robot("drug_delivery")
+    square = FreeSpace.square(0.02, capsule.length, capsule.diameter)
+    spine = Path(__file__).parents[1] / "protocols" / "phantoms" / "spine_l3l4.yaml"
+    phantom = load_phantom(spine)
+    channel = FreeSpace(phantom.boundaries, phantom.critical, capsule.length, capsule.diameter)
+    base = NMPCConfig()
+    other_form = replace(
+        base, soft_constraints="slack" if base.soft_constraints == "penalty" else "penalty"
+    )
+    variants = {
+        "default": (zernike_model, magnet_robot, base, None),
+        "default again": (zernike_model, magnet_robot, base, None),
+        "position weight": (zernike_model, magnet_robot, replace(base, q_position=1.01), None),
+        "horizon": (zernike_model, magnet_robot, replace(base, horizon=base.horizon - 2), None),
+        "no heading term": (zernike_model, magnet_robot, replace(base, heading_weight=0.0), None),
+        "field-model error": (zernike_model, magnet_robot, replace(base, field_error=0.05), None),
+        "lookup tables": (lut_model, magnet_robot, base, None),
+        "capsule": (zernike_model, capsule, base, square),
+        "capsule in a channel": (zernike_model, capsule, base, channel),
+        "channel, the soft constraints' other form": (zernike_model, capsule, other_form, channel),
+    }
+    keys = {}
+    for name, (model, robot, config, free_space) in variants.items():
+        with pytest.raises(_Generated) as seen:
+            NMPC(model, robot, config, free_space)
+        keys[name] = seen.value.args
+        assert keys[name][0] is not None, name
+    names = list(keys)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            same_print = keys[a][0] == keys[b][0]
+            same_source = keys[a][1] == keys[b][1]
+            assert same_print == same_source, (a, b, same_print, same_source)
+    assert keys["default"] == keys["default again"]
+    assert len({k[1] for k in keys.values()}) == len(keys) - 1  # each variant's own code
 
 
 def test_without_a_compiler_functions_run_uncompiled(tmp_path, monkeypatch) -> None:
@@ -340,8 +453,6 @@ def test_damped_corrective_iterations_leave_a_cycle_that_full_steps_keep(zernike
     objective more than 50 times IPOPT's optimum, 10 ticks on), where half steps in the
     corrective iterations reach IPOPT's optimum (objective within 10 %, first currents within
     3 A, the heading within 0.2 mT of its bound)."""
-    from pathlib import Path
-
     from magrun.freespace import FreeSpace
     from magrun.phantom import load_phantom
     from magrun.protocol import load_protocol

@@ -25,6 +25,7 @@ from __future__ import annotations
 import ctypes
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -32,7 +33,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.compiled import CompileWarning, shared_library
+from magrun.compiled import CompileWarning, fingerprint, shared_library
 
 FloatArray = NDArray[np.float64]
 
@@ -85,8 +86,8 @@ def _link_args() -> tuple[str, ...] | None:
 
 
 def build_kernel(
-    stage: ca.Function,
-    terminal: ca.Function,
+    stage_functions: Callable[[], tuple[ca.Function, ca.Function]],
+    problem: ca.Function,
     heading: ca.Function | None,
     step: ca.Function,
     dims: dict[str, int],
@@ -94,11 +95,14 @@ def build_kernel(
 ) -> Path | None:
     """Generate and compile the kernel; the library's path, or None (module doc).
 
-    ``stage(s, v, par)`` → (s_next, A, B, r, Js, Jv, g, Gs, Gv), ``terminal(s, par)`` →
-    (rN, JN, gN, GN), with g the soft constraints' weighted gaps (≥ 0 where kept; the
-    heading's row first), ``heading(X, u)`` → the heading residual (one row), all outputs
-    dense; ``step(X, u)`` → the next state (the planner's prediction); ``dims``: N, NS, NU,
-    NR, NRT, NG, NGT, NGH (stage 0's soft rows: the heading's), NP, NB.
+    ``stage_functions()`` → (stage, terminal): ``stage(s, v, par)`` → (s_next, A, B, r, Js,
+    Jv, g, Gs, Gv), ``terminal(s, par)`` → (rN, JN, gN, GN), with g the soft constraints'
+    weighted gaps (≥ 0 where kept; the heading's row first), all outputs dense; called only
+    where the cache does not know the library already. ``problem``: what they differentiate,
+    ``(s, v, par)`` → (s_next, r, g, rN, gN), the cache's fingerprint of them
+    (:mod:`magrun.compiled`). ``heading(X, u)`` → the heading residual (one row); ``step(X,
+    u)`` → the next state (the planner's prediction); ``dims``: N, NS, NU, NR, NRT, NG, NGT,
+    NGH (stage 0's soft rows: the heading's), NP, NB.
     """
     link = _link_args()
     if link is None:
@@ -117,14 +121,14 @@ def build_kernel(
         heading_fn = ca.Function("rti_heading", [X, u], [ca.SX.zeros(1)])
     else:
         heading_fn = ca.Function("rti_heading", [X, u], [heading(X, u)])
-    functions = [
-        _dense("rti_stage", stage), _dense("rti_terminal", terminal), heading_fn,
-        _dense("rti_step", step),
-    ]  # fmt: skip
+    layout = repr(sorted(dims.items())).encode()
+    graphs = fingerprint(problem, heading_fn, step)
 
     def write(folder: Path) -> Path:
+        stage, terminal = stage_functions()
         cg = ca.CodeGenerator("rti_generated.c", {"with_header": False})
-        for f in functions:
+        for f in (_dense("rti_stage", stage), _dense("rti_terminal", terminal), heading_fn,
+                  _dense("rti_step", step)):  # fmt: skip
             cg.add(f)
         generated = Path(cg.generate(str(folder) + os.sep)).read_text()
         defines = "".join(f"#define RTI_{k} {v}\n" for k, v in sorted(dims.items()))
@@ -137,7 +141,10 @@ def build_kernel(
     # runs as fast (HPIPM and BLASFEO, where it goes, are compiled on their own), the
     # preparation 1-1.5 % slower, and the recordings are the same bit for bit
     # (docs/benchmarks.md, "Compiling the kernel")
-    return shared_library(name, write, optimisation="-O1", link=link, without=FALLBACK)
+    return shared_library(
+        name, write, optimisation="-O1", link=link, without=FALLBACK,
+        fingerprint=None if graphs is None else layout + b"\0" + graphs,
+    )  # fmt: skip
 
 
 class Feedback(NamedTuple):

@@ -64,18 +64,24 @@ class RTISolver(Backend):
             g, gN = ocp.soft_gaps(X, u, ref), ocp.soft_gaps(X, None, ref)
         else:
             r, rN, g, gN = r_all, rN_all, ca.SX(0, 1), ca.SX(0, 1)
-        # common subexpressions: the heading's derivatives repeat the field's derivatives the
-        # dynamics' Jacobian already has
-        kernel_stage = ca.Function(
-            "rti_stage", [s, v, ref],
-            [s_next, ca.jacobian(s_next, s), ca.jacobian(s_next, v), r, ca.jacobian(r, s),
-             ca.jacobian(r, v), g, ca.jacobian(g, s), ca.jacobian(g, v)],
-            {"cse": True},
-        )  # fmt: skip
-        kernel_terminal = ca.Function(
-            "rti_terminal", [s, ref], [rN, ca.jacobian(rN, s), gN, ca.jacobian(gN, s)]
-        )
-        self.kernel = self._kernel(kernel_stage, kernel_terminal, r.shape[0], rN.shape[0],
+
+        def kernel_functions() -> tuple[ca.Function, ca.Function]:
+            # common subexpressions: the heading's derivatives repeat the field's derivatives
+            # the dynamics' Jacobian already has. Built only where the compiled cache does
+            # not know the kernel yet (0.1-1.3 s: magrun.compiled)
+            stage = ca.Function(
+                "rti_stage", [s, v, ref],
+                [s_next, ca.jacobian(s_next, s), ca.jacobian(s_next, v), r, ca.jacobian(r, s),
+                 ca.jacobian(r, v), g, ca.jacobian(g, s), ca.jacobian(g, v)],
+                {"cse": True},
+            )  # fmt: skip
+            terminal = ca.Function(
+                "rti_terminal", [s, ref], [rN, ca.jacobian(rN, s), gN, ca.jacobian(gN, s)]
+            )
+            return stage, terminal
+
+        problem = ca.Function("rti_problem", [s, v, ref], [s_next, r, g, rN, gN])
+        self.kernel = self._kernel(kernel_functions, problem, r.shape[0], rN.shape[0],
                                    g.shape[0], gN.shape[0])  # fmt: skip
         self.robust_retries = 0
         self.relinearised = 0  # prepared ticks linearised again at the measurement
@@ -166,8 +172,8 @@ class RTISolver(Backend):
     KERNEL_TOLERANCES = ("res_g_max", "res_b_max", "res_d_max", "res_m_max")
 
     def _kernel(
-        self, stage: ca.Function, terminal: ca.Function, n_r: int, n_rt: int, n_g: int,
-        n_gt: int,
+        self, functions: Callable[[], tuple[ca.Function, ca.Function]], problem: ca.Function,
+        n_r: int, n_rt: int, n_g: int, n_gt: int,
     ) -> RTIKernel | None:  # fmt: skip
         """The compiled kernel (:mod:`magrun.control.rti_kernel`), or None for CasADi's QP."""
         ocp, cfg = self.ocp, self.ocp.config
@@ -178,7 +184,7 @@ class RTISolver(Backend):
                 "NB": 2 + nu, "NG": n_g, "NGT": n_gt,
                 "NGH": int(ocp.has_heading and n_g > 0)}  # fmt: skip
         heading = ocp.heading_residual if ocp.has_heading else None
-        library = build_kernel(stage, terminal, heading, ocp.step_scaled, dims)
+        library = build_kernel(functions, problem, heading, ocp.step_scaled, dims)
         if library is None:
             return None
         hp = {"iter_max": 50, **dict.fromkeys(self.KERNEL_TOLERANCES, 1e-08), "mu0": KERNEL_MU0,
