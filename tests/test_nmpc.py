@@ -170,7 +170,7 @@ def test_the_kernels_fingerprint_separates_what_its_source_separates(
     whose generated C differs (a weight, the horizon, the soft constraints' form, no heading
     term, the field-model error, the lookup-table model, another robot, a corridor) must have
     different fingerprints, and the same configuration built twice the same one, or the cache
-    would load another controller's kernel, or never hit."""
+    would load another controller's kernel, or never hit. The same for IPOPT's callbacks."""
     from magrun.control import rti_kernel
     from magrun.freespace import FreeSpace
     from magrun.phantom import load_phantom
@@ -222,6 +222,22 @@ def test_the_kernels_fingerprint_separates_what_its_source_separates(
             assert same_print == same_source, (a, b, same_print, same_source)
     assert keys["default"] == keys["default again"]
     assert len({k[1] for k in keys.values()}) == len(keys) - 1  # each variant's own code
+
+    # IPOPT's callbacks, by the NLP's graph and the solver's options
+    from magrun.control.nmpc import ipopt
+
+    monkeypatch.setattr(ipopt, "shared_library", recorded)
+    nlps = {}
+    for name, config in [("default", base), ("default again", base),
+                         ("position weight", replace(base, q_position=1.01)),
+                         ("iterations", replace(base, max_iter=base.max_iter + 1))]:  # fmt: skip
+        with pytest.raises(_Generated) as seen:
+            NMPC(zernike_model, magnet_robot, replace(config, solver="ipopt"))
+        nlps[name] = seen.value.args
+    assert nlps["default"] == nlps["default again"]
+    assert nlps["position weight"][1] != nlps["default"][1]
+    assert nlps["position weight"][0] != nlps["default"][0]
+    assert nlps["iterations"][0] != nlps["default"][0]  # an option: a key of its own
 
 
 def test_without_a_compiler_functions_run_uncompiled(tmp_path, monkeypatch) -> None:

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
 
-from magrun.compiled import shared_library
+from magrun.compiled import fingerprint, shared_library
 from magrun.control.nmpc.backend import Backend, SolveResult
 from magrun.control.nmpc.config import NP, NX, SUCCESS, Iterate
 from magrun.control.nmpc.problem import OCP
@@ -94,11 +94,9 @@ class IpoptSolver(Backend):
             },
         }
         nlp = {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}
-        solver = ca.nlpsol("nmpc_ipopt", "ipopt", nlp, opts)
-        library = self._compile(solver) if cfg.compile else None
-        self.solver = (
-            solver if library is None else ca.nlpsol("nmpc_ipopt", "ipopt", str(library), opts)
-        )
+        library = self._compile(nlp, opts) if cfg.compile else None
+        self.solver = ca.nlpsol("nmpc_ipopt", "ipopt", nlp if library is None else str(library),
+                                opts)  # fmt: skip
         warm = {
             "warm_start_init_point": "yes",
             "warm_start_bound_push": 1e-9,
@@ -117,8 +115,12 @@ class IpoptSolver(Backend):
         self.reset()
 
     @staticmethod
-    def _compile(solver: ca.Function) -> Path | None:
+    def _compile(nlp: dict[str, Any], opts: dict[str, Any]) -> Path | None:
+        """IPOPT's NLP callbacks compiled (cached; found by the NLP's graph where the cache
+        knows it, without building the solver's derivatives: :mod:`magrun.compiled`)."""
+
         def write(folder: Path) -> Path:
+            solver = ca.nlpsol("nmpc_ipopt", "ipopt", nlp, opts)
             cwd = os.getcwd()
             os.chdir(folder)  # generate_dependencies writes into the working directory
             try:
@@ -126,7 +128,11 @@ class IpoptSolver(Backend):
             finally:
                 os.chdir(cwd)
 
-        return shared_library("nmpc_ipopt", write, optimisation="-O1")
+        graph = fingerprint(ca.Function("nmpc_nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]]))
+        return shared_library(
+            "nmpc_ipopt", write, optimisation="-O1",
+            fingerprint=None if graph is None else graph + repr(opts).encode(),
+        )  # fmt: skip
 
     def reset(self) -> None:
         self._w: FloatArray | None = None
