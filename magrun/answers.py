@@ -1,9 +1,11 @@
 """Answers that take seconds to compute, kept in the machine's cache between processes.
 
-Before its first trial a process tunes the baselines to the coils: their typical wrench over
-the workspace takes about a thousand small linear programs, most of a second. Every
-``magrun run``, every campaign worker and every test process asks it again for the same
-system and robot, so the answer is kept on disk beside the compiled code::
+Before its first trial a process tunes the baselines to the coils (their typical wrench over
+the workspace), plans the headings the coils can hold along the reference and checks that
+they can move the robot along it: each about a thousand small linear programs, most of a
+second. Every ``magrun run``, every campaign worker and every test process asks them again
+for the same system, robot and reference, so the answers are kept on disk beside the
+compiled code (:mod:`magrun.trial` says what each keeps)::
 
     <cache>/answers/<kind>-<key>.json     key: SHA-256 of what the answer is computed from
                                           and of magrun's own source

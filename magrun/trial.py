@@ -570,7 +570,7 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
     typical_field` (:func:`~magrun.field.capability.workspace_capability` on the system's
     lookup-table model; ~1 s, remembered in the process and in the machine's cache:
     :mod:`magrun.answers`)."""
-    from magrun.answers import files_digest, remembered
+    from magrun.answers import remembered
     from magrun.field.capability import workspace_capability
 
     def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[float, float]:
@@ -581,11 +581,21 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
             )
             return cap.typical_force, cap.typical_field * robot.moment
 
-        inputs = (files_digest(coils.folder).encode(), *_limits_and_robot(coils, robot))
-        force, torque = remembered("typical_wrench", inputs, numbers)
+        force, torque = remembered("typical_wrench", _answer_inputs(coils, robot), numbers)
         return force, torque
 
     return _remembered(_WRENCH, coils, None, robot, compute)
+
+
+def _answer_inputs(
+    coils: CoilSystem, robot: RobotParams, reference: Trajectory | None = None
+) -> tuple[bytes, ...]:
+    """What an answer kept in the machine's cache (:mod:`magrun.answers`) depends on: the
+    system's files by content, its limits, the robot and the reference's knots."""
+    from magrun.answers import files_digest
+
+    knots = () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
+    return (files_digest(coils.folder).encode(), *_limits_and_robot(coils, robot), *knots)
 
 
 def planned_reference(
@@ -594,16 +604,25 @@ def planned_reference(
     """``(trajectory, factor)``: ``reference`` with the headings the coils can hold (the
     nominal robot, the system's lookup-table model, its limits;
     :func:`magrun.field.capability.held_reference`), ``reference`` itself where they hold
-    its own heading throughout; and how many times over they give its velocity (median)."""
-    from magrun.field.capability import held_reference
+    its own heading throughout; and how many times over they give its velocity (median).
+    Remembered in the process and in the machine's cache (the heading offsets and the
+    factor: :mod:`magrun.answers`)."""
+    from magrun.answers import remembered
+    from magrun.field.capability import held_reference, held_trajectory
 
-    held = _remembered(
-        _PLANNED, coils, reference, robot,
-        lambda model: held_reference(model(), robot, coils.max_current, reference),
-    )  # fmt: skip
-    # the cached trajectory stands for this reference: the same object where unchanged
-    same = held.trajectory is reference or not held.offsets.any()
-    return (reference if same else held.trajectory), held.median_factor
+    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[Trajectory, float]:
+        def numbers() -> tuple[float, ...]:
+            held = held_reference(lut(), robot, coils.max_current, reference)
+            return (held.median_factor, *held.offsets)
+
+        factor, *kept = remembered("planned_headings", _answer_inputs(coils, robot, reference),
+                                   numbers)  # fmt: skip
+        offsets = np.array(kept)
+        # the scene's own object where they hold its own heading (the offsets all zero)
+        return (held_trajectory(reference, offsets) if offsets.any() else reference), factor
+
+    planned: tuple[Trajectory, float] = _remembered(_PLANNED, coils, reference, robot, compute)
+    return planned
 
 
 #: check_reach's verdicts in this process (_remembered)
@@ -612,15 +631,26 @@ _REACH: dict[tuple[Any, ...], Any] = {}
 
 def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) -> None:
     """A :class:`RunError` where the coils cannot move ``robot`` along ``reference`` (the
-    nominal robot, the system's lookup-table model, its current limits)."""
-    from magrun.field.capability import trajectory_capability
+    nominal robot, the system's lookup-table model, its current limits). A reference they
+    can is remembered in the process and in the machine's cache (:mod:`magrun.answers`)."""
+    from magrun.answers import remembered
+    from magrun.field.capability import TrajectoryCapability, trajectory_capability
 
-    reach = _remembered(
-        _REACH, coils, reference, robot,
-        lambda model: trajectory_capability(
-            model(), robot, coils.max_current, reference, 200, True
-        ),
-    )  # fmt: skip
+    def compute(lut: Callable[[], PlanarFieldModel]) -> TrajectoryCapability | None:
+        found: list[TrajectoryCapability] = []
+
+        def verdict() -> tuple[float]:
+            found.append(
+                trajectory_capability(lut(), robot, coils.max_current, reference, 200, True)
+            )
+            return (1.0 if found[0].feasible else math.nan,)  # NaN: not kept
+
+        remembered("reachable", _answer_inputs(coils, robot, reference), verdict)
+        return found[0] if found else None  # None: reachable, as the cache remembers
+
+    reach = _remembered(_REACH, coils, reference, robot, compute)
+    if reach is None or reach.feasible:
+        return
     if reach.feasible:
         return
     k = len(reach.t) - 1  # the first pose out of reach

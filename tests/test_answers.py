@@ -95,3 +95,58 @@ def test_the_typical_wrench_from_the_cache_is_the_computed_one(
     weaker = cast(CoilSystem, SimpleNamespace(folder=None, max_current=coils.max_current / 2))
     with pytest.raises(AssertionError, match="computed again"):
         trial.typical_wrench(weaker, robot)
+
+
+def test_the_planned_headings_and_the_reach_from_the_cache_are_the_computed_ones(
+    cache: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """On three coils that cannot hold the S's own heading, a second process's planned
+    reference (its memory cleared) is built from the kept heading offsets, not the linear
+    programs, and equals the computed one to the last bit, as does its factor; the reference
+    is reachable, and that verdict too comes from the file. A reference the coils cannot
+    follow is not kept: its error is found again, with the same message, every time."""
+    import numpy as np
+    from test_capability import ROBOT, TRI
+
+    from magrun.field.capability import held_reference
+    from magrun.field.mpem import import_mpem
+    from magrun.field.system import load_system
+    from magrun.scene import s_trajectory
+
+    (tmp_path / "tri.yaml").write_text(TRI)
+    folder = import_mpem(tmp_path / "tri.yaml", tmp_path / "tri", 0.0, (0.0, 0.0), 10e-3)
+    coils = CoilSystem.load(folder)
+    reference = s_trajectory(size=8e-3, speed=0.5e-3)
+    for memory in ("_PLANNED", "_REACH"):
+        monkeypatch.setattr(trial, memory, {})
+    trial.check_reach(coils, reference, ROBOT)
+    planned, factor = trial.planned_reference(coils, reference, ROBOT)
+    assert planned is not reference  # headings turned: the offsets matter
+    direct = held_reference(load_system(folder).models[1], ROBOT, coils.max_current, reference)
+    assert np.array_equal(planned.poses, direct.trajectory.poses)
+    assert factor == direct.median_factor
+    for memory in ("_PLANNED", "_REACH"):
+        monkeypatch.setattr(trial, memory, {})
+
+    def no_lp(*args: object, **kwargs: object) -> None:
+        raise AssertionError("computed again")
+
+    monkeypatch.setattr("magrun.field.capability.held_reference", no_lp)
+    monkeypatch.setattr("magrun.field.capability.trajectory_capability", no_lp)
+    trial.check_reach(coils, reference, ROBOT)
+    again, factor_again = trial.planned_reference(coils, reference, ROBOT)
+    assert factor_again == factor
+    assert np.array_equal(again.t, planned.t)
+    assert np.array_equal(again.poses, planned.poses)
+
+    monkeypatch.undo()
+    monkeypatch.setenv("MAGRUN_CACHE_DIR", str(cache.parent))
+    fast = s_trajectory(size=8e-3, speed=50e-3)
+    messages = []
+    for _ in range(2):
+        monkeypatch.setattr(trial, "_REACH", {})
+        with pytest.raises(trial.RunError) as err:
+            trial.check_reach(coils, fast, ROBOT)
+        messages.append(str(err.value))
+    assert messages[0] == messages[1]
+    assert len(list(cache.glob("reachable-*.json"))) == 1  # the reachable S's alone

@@ -422,6 +422,13 @@ def held_reference(
             else:
                 factors[k] = factor(k, previous)
         offsets[k] = previous
+    return HeldReference(held_trajectory(reference, offsets), offsets, factors)
+
+
+def held_trajectory(reference: Trajectory, offsets: FloatArray) -> Trajectory:
+    """``reference`` with :func:`held_reference`'s heading ``offsets`` (rad, one per checked
+    pose) smoothed and added to its headings."""
+    t = np.linspace(0.0, reference.duration, HELD_SAMPLES)
     half = HELD_SMOOTHING // 2
     padded = np.pad(offsets, half, mode="edge")
     smooth = np.convolve(padded, np.ones(HELD_SMOOTHING) / HELD_SMOOTHING, mode="valid")
@@ -430,4 +437,4 @@ def held_reference(
     t_out = np.union1d(reference.t, t)
     poses_out = reference.pose(t_out)
     poses_out[:, 2] += np.interp(t_out, t, smooth)
-    return HeldReference(Trajectory(t_out, poses_out), offsets, factors)
+    return Trajectory(t_out, poses_out)
