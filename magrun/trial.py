@@ -610,7 +610,7 @@ def planned_reference(
     from magrun.answers import remembered
     from magrun.field.capability import held_reference, held_trajectory
 
-    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[Trajectory, float]:
+    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[Trajectory | None, float]:
         def numbers() -> tuple[float, ...]:
             held = held_reference(lut(), robot, coils.max_current, reference)
             return (held.median_factor, *held.offsets)
@@ -618,11 +618,13 @@ def planned_reference(
         factor, *kept = remembered("planned_headings", _answer_inputs(coils, robot, reference),
                                    numbers)  # fmt: skip
         offsets = np.array(kept)
-        # the scene's own object where they hold its own heading (the offsets all zero)
-        return (held_trajectory(reference, offsets) if offsets.any() else reference), factor
+        return (held_trajectory(reference, offsets) if offsets.any() else None), factor
 
-    planned: tuple[Trajectory, float] = _remembered(_PLANNED, coils, reference, robot, compute)
-    return planned
+    held, factor = _remembered(_PLANNED, coils, reference, robot, compute)
+    # None: the coils hold the reference's own headings, and the planned reference is the
+    # object asked about (not an equal one remembered from another trial: trials compare
+    # the two objects to know whether the headings were turned)
+    return (reference if held is None else held), factor
 
 
 #: check_reach's verdicts in this process (_remembered)

@@ -150,3 +150,24 @@ def test_the_planned_headings_and_the_reach_from_the_cache_are_the_computed_ones
         messages.append(str(err.value))
     assert messages[0] == messages[1]
     assert len(list(cache.glob("reachable-*.json"))) == 1  # the reachable S's alone
+
+
+def test_a_reference_whose_headings_hold_is_planned_as_itself(
+    cache: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where the coils hold a reference's own headings, its planned reference is the very
+    object asked about, also for a second trial's equal reference: a trial knows its
+    headings were turned by comparing the two objects (a remembered equal object once made
+    the second trial of a protocol tune its NMPC for turned headings)."""
+    from magrun.scene import s_trajectory
+
+    coils, robot = CoilSystem.load(), load_robot("magnet")
+    monkeypatch.setattr(trial, "_PLANNED", {})
+    for _ in range(2):  # computed, then remembered in the process
+        reference = s_trajectory()
+        planned, factor = trial.planned_reference(coils, reference, robot)
+        assert planned is reference
+        assert factor > 1.0
+    monkeypatch.setattr(trial, "_PLANNED", {})
+    reference = s_trajectory()
+    assert trial.planned_reference(coils, reference, robot)[0] is reference  # from the file
