@@ -42,23 +42,28 @@ def files_digest(path: str | Path | None) -> str:
 
 
 def remembered(
-    kind: str, inputs: Iterable[bytes], compute: Callable[[], tuple[float, ...]]
+    kind: str, inputs: Iterable[bytes], compute: Callable[[], tuple[float, ...]], length: int
 ) -> tuple[float, ...]:
-    """``compute()``'s numbers for ``inputs``, from the cache where it holds them, else
-    computed and kept there (module doc). ``kind`` names the answer (a file name's start)."""
+    """``compute()``'s ``length`` numbers for ``inputs``, from the cache where it holds them,
+    else computed and kept there (module doc). ``kind`` names the answer (a file name's
+    start); a file that is not a list of ``length`` finite numbers is computed again."""
     h = hashlib.sha256(package_digest().encode())
     for part in inputs:
         h.update(hashlib.sha256(part).digest())
     path = cache_dir() / "answers" / f"{kind}-{h.hexdigest()[:24]}.json"
     try:
         numbers = json.loads(path.read_text())
-        if isinstance(numbers, list) and all(
-            isinstance(x, float) and math.isfinite(x) for x in numbers
+        if (
+            isinstance(numbers, list)
+            and len(numbers) == length
+            and all(isinstance(x, float) and math.isfinite(x) for x in numbers)
         ):
             return tuple(numbers)
     except (OSError, ValueError, RecursionError):  # none kept, or not one of these files
         pass
     answer = tuple(float(x) for x in compute())
+    if len(answer) != length:
+        raise ValueError(f"{kind}: {len(answer)} numbers computed where {length} are kept")
     if all(math.isfinite(x) for x in answer):
         _write(path, answer)
     return answer

@@ -581,7 +581,7 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
             )
             return cap.typical_force, cap.typical_field * robot.moment
 
-        force, torque = remembered("typical_wrench", _answer_inputs(coils, robot), numbers)
+        force, torque = remembered("typical_wrench", _answer_inputs(coils, robot), numbers, 2)
         return force, torque
 
     return _remembered(_WRENCH, coils, None, robot, compute)
@@ -608,15 +608,15 @@ def planned_reference(
     Remembered in the process and in the machine's cache (the heading offsets and the
     factor: :mod:`magrun.answers`)."""
     from magrun.answers import remembered
-    from magrun.field.capability import held_reference, held_trajectory
+    from magrun.field.capability import HELD_SAMPLES, held_reference, held_trajectory
 
     def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[Trajectory | None, float]:
         def numbers() -> tuple[float, ...]:
             held = held_reference(lut(), robot, coils.max_current, reference)
             return (held.median_factor, *held.offsets)
 
-        factor, *kept = remembered("planned_headings", _answer_inputs(coils, robot, reference),
-                                   numbers)  # fmt: skip
+        inputs = _answer_inputs(coils, robot, reference)
+        factor, *kept = remembered("planned_headings", inputs, numbers, 1 + HELD_SAMPLES)
         offsets = np.array(kept)
         return (held_trajectory(reference, offsets) if offsets.any() else None), factor
 
@@ -647,7 +647,9 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
             )
             return (1.0 if found[0].feasible else math.nan,)  # NaN: not kept
 
-        remembered("reachable", _answer_inputs(coils, robot, reference), verdict)
+        kept = remembered("reachable", _answer_inputs(coils, robot, reference), verdict, 1)
+        if not found and kept != (1.0,):  # a kept number that is not the verdict
+            verdict()
         return found[0] if found else None  # None: reachable, as the cache remembers
 
     reach = _remembered(_REACH, coils, reference, robot, compute)

@@ -35,13 +35,13 @@ def _counted(numbers: tuple[float, ...]):
 def test_an_answer_is_computed_once_and_read_back_to_the_last_bit(cache: Path) -> None:
     numbers = (math.pi / 7, 1e-300, -2.5e17, 0.1 + 0.2)
     compute, calls = _counted(numbers)
-    assert answers.remembered("t", [b"a", b"b"], compute) == numbers
-    assert answers.remembered("t", [b"a", b"b"], compute) == numbers  # from the file
+    assert answers.remembered("t", [b"a", b"b"], compute, 4) == numbers
+    assert answers.remembered("t", [b"a", b"b"], compute, 4) == numbers  # from the file
     assert len(calls) == 1
     assert len(list(cache.glob("t-*.json"))) == 1
     assert not list(cache.glob(".*"))  # no temporary file left
-    answers.remembered("t", [b"ab"], compute)  # other inputs (not the same bytes joined)
-    answers.remembered("t", [b"b", b"a"], compute)
+    answers.remembered("t", [b"ab"], compute, 4)  # other inputs (not the same bytes joined)
+    answers.remembered("t", [b"b", b"a"], compute, 4)
     assert len(calls) == 3
 
 
@@ -49,18 +49,22 @@ def test_changed_code_or_a_damaged_file_computes_it_again(
     cache: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     compute, calls = _counted((1.5, 2.5))
-    answers.remembered("t", [b"x"], compute)
+    answers.remembered("t", [b"x"], compute, 2)
     (path,) = cache.glob("t-*.json")
-    for damaged in ["[1.5, ", '["1.5", 2.5]', "[NaN, 1.0]", "{}", "[" * 100_000 + "]" * 100_000]:
+    damaged_files = ["[1.5, ", '["1.5", 2.5]', "[NaN, 1.0]", "{}", "[1.5]", "[1.5, 2.5, 3.5]",
+                     "[" * 100_000 + "]" * 100_000]  # fmt: skip
+    for damaged in damaged_files:
         path.write_text(damaged)
-        assert answers.remembered("t", [b"x"], compute) == (1.5, 2.5)
-    assert len(calls) == 6
+        assert answers.remembered("t", [b"x"], compute, 2) == (1.5, 2.5)
+    assert len(calls) == 1 + len(damaged_files)
     assert path.read_text() == "[1.5, 2.5]"  # replaced by the computed answer
     monkeypatch.setattr(answers, "package_digest", lambda: "another version of magrun")
-    answers.remembered("t", [b"x"], compute)
-    assert len(calls) == 7
+    answers.remembered("t", [b"x"], compute, 2)
+    assert len(calls) == 2 + len(damaged_files)
+    with pytest.raises(ValueError, match="3 numbers computed where 2 are kept"):
+        answers.remembered("u", [b"x"], _counted((1.0, 2.0, 3.0))[0], 2)
     compute_nan, _ = _counted((math.nan,))
-    assert math.isnan(answers.remembered("n", [b"x"], compute_nan)[0])
+    assert math.isnan(answers.remembered("n", [b"x"], compute_nan, 1)[0])
     assert not list(cache.glob("n-*"))  # not kept: a NaN is no answer to read back
 
 
@@ -136,6 +140,17 @@ def test_the_planned_headings_and_the_reach_from_the_cache_are_the_computed_ones
     trial.check_reach(coils, reference, ROBOT)
     again, factor_again = trial.planned_reference(coils, reference, ROBOT)
     assert factor_again == factor
+    # a kept verdict that is not one, or headings of another count, are checked again
+    (verdict,) = cache.glob("reachable-*.json")
+    (headings,) = cache.glob("planned_headings-*.json")
+    verdict.write_text("[0.5]")
+    headings.write_text("[8.0, 0.1, 0.2]")
+    for memory in ("_PLANNED", "_REACH"):
+        monkeypatch.setattr(trial, memory, {})
+    with pytest.raises(AssertionError, match="computed again"):
+        trial.check_reach(coils, reference, ROBOT)
+    with pytest.raises(AssertionError, match="computed again"):
+        trial.planned_reference(coils, reference, ROBOT)
     assert np.array_equal(again.t, planned.t)
     assert np.array_equal(again.poses, planned.poses)
 
