@@ -164,11 +164,11 @@ class _Generated(Exception):
 
 
 def test_the_kernels_fingerprint_separates_what_its_source_separates(
-    zernike_model, lut_model, magnet_robot, monkeypatch
+    zernike_model, magnet_robot, monkeypatch
 ) -> None:
     """The cache finds the RTI's kernel by the graph it is generated from: configurations
     whose generated C differs (a weight, the horizon, the soft constraints' form, no heading
-    term, the field-model error, the lookup-table model, another robot, a corridor) must have
+    term, the field-model error, another robot, a corridor, a lookup table's entry) must have
     different fingerprints, and the same configuration built twice the same one, or the cache
     would load another controller's kernel, or never hit. The same for IPOPT's callbacks."""
     from magrun.control import rti_kernel
@@ -203,7 +203,6 @@ def test_the_kernels_fingerprint_separates_what_its_source_separates(
         "horizon": (zernike_model, magnet_robot, replace(base, horizon=base.horizon - 2), None),
         "no heading term": (zernike_model, magnet_robot, replace(base, heading_weight=0.0), None),
         "field-model error": (zernike_model, magnet_robot, replace(base, field_error=0.05), None),
-        "lookup tables": (lut_model, magnet_robot, base, None),
         "capsule": (zernike_model, capsule, base, square),
         "capsule in a channel": (zernike_model, capsule, base, channel),
         "channel, the soft constraints' other form": (zernike_model, capsule, other_form, channel),
@@ -222,6 +221,15 @@ def test_the_kernels_fingerprint_separates_what_its_source_separates(
             assert same_print == same_source, (a, b, same_print, same_source)
     assert keys["default"] == keys["default again"]
     assert len({k[1] for k in keys.values()}) == len(keys) - 1  # each variant's own code
+
+    # a lookup-table model's graph holds its tables: one entry nudged is another graph
+    x = ca.MX.sym("x")
+    grid, values = np.linspace(0.0, 1.0, 5), np.linspace(0.0, 2.0, 5)
+    nudged = values.copy()
+    nudged[2] = np.nextafter(nudged[2], 2.0)
+    tables = [ca.interpolant("lut", "linear", [grid], v) for v in (values, values, nudged)]
+    prints = [compiled_mod.fingerprint(ca.Function("f", [x], [t(x)])) for t in tables]
+    assert prints[0] == prints[1] != prints[2]
 
     # IPOPT's callbacks, by the NLP's graph and the solver's options (its code takes a
     # second a variant to generate: the keys alone)
