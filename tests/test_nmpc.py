@@ -187,6 +187,8 @@ def test_the_kernels_fingerprint_separates_what_its_source_separates(
     monkeypatch.setenv("MAGRUN_COMPILE", "1")
     monkeypatch.setattr(compiled_mod, "compilation_enabled", lambda: True)
     monkeypatch.setattr(rti_kernel, "shared_library", recorded)
+    # the planner's other compiled functions are not under test: left uncompiled
+    monkeypatch.setattr("magrun.control.nmpc.problem.compiled", lambda function: function)
     capsule = load_robot("drug_delivery")
     square = FreeSpace.square(0.02, capsule.length, capsule.diameter)
     spine = Path(__file__).parents[1] / "protocols" / "phantoms" / "spine_l3l4.yaml"
