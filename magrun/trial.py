@@ -400,27 +400,29 @@ PAPER_SPEED_FACTOR = 8.2
 INTEGRAL_TIME = 0.1
 
 
-def _limits_and_robot(coils: CoilSystem, robot: RobotParams) -> tuple[bytes, bytes]:
-    """What an answer about ``coils`` depends on besides the system's files: the current
-    limits and the robot (every field's repr)."""
-    return np.atleast_1d(coils.max_current).tobytes(), repr(robot).encode()
-
-
 def _remembered(
-    cache: dict[tuple[Any, ...], Any], coils: CoilSystem, reference: Trajectory | None,
-    robot: RobotParams, compute: Callable[[Callable[[], PlanarFieldModel]], Any],
-) -> Any:  # fmt: skip
-    """``compute(model)``, ``model()`` giving the system's lookup-table model, remembered in
-    ``cache`` (at most 32) by system, limits, robot and trajectory (None: an answer for the
-    whole workspace): a test session or a campaign runs the same protocol many times, and
-    each answer costs hundreds of linear programs."""
-    key = (coils.folder, *_limits_and_robot(coils, robot)) + (
-        () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
-    )
+    cache: dict[tuple[Any, ...], tuple[float, ...]], kind: str, coils: CoilSystem,
+    reference: Trajectory | None, robot: RobotParams, length: int,
+    compute: Callable[[PlanarFieldModel], tuple[float, ...]],
+) -> tuple[float, ...]:  # fmt: skip
+    """``compute(the system's lookup-table model)``: ``length`` numbers about ``coils``, the
+    robot and ``reference`` (None: an answer for the whole workspace), remembered in this
+    process's ``cache`` (at most 32) and in the machine's cache under ``kind``
+    (:mod:`magrun.answers`): a test session or a campaign runs the same protocol many times,
+    and each answer costs hundreds of linear programs. The inputs are the system's files by
+    content, its limits, the robot (every field's repr) and the reference's knots."""
+    from magrun.answers import files_digest, remembered
+
+    knots = () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
+    limits = np.atleast_1d(coils.max_current).tobytes()
+    key = (kind, coils.folder, limits, repr(robot), *knots)
     if key not in cache:
         if len(cache) >= 32:
             cache.clear()
-        cache[key] = compute(lambda: load_system(coils.folder).models[1])
+        inputs = (files_digest(coils.folder).encode(), limits, repr(robot).encode(), *knots)
+        cache[key] = remembered(
+            kind, inputs, lambda: compute(load_system(coils.folder).models[1]), length
+        )
     return cache[key]
 
 
@@ -570,32 +572,16 @@ def typical_wrench(coils: CoilSystem, robot: RobotParams) -> tuple[float, float]
     typical_field` (:func:`~magrun.field.capability.workspace_capability` on the system's
     lookup-table model; ~1 s, remembered in the process and in the machine's cache:
     :mod:`magrun.answers`)."""
-    from magrun.answers import remembered
     from magrun.field.capability import workspace_capability
 
-    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[float, float]:
-        def numbers() -> tuple[float, float]:
-            model = lut()
-            cap = workspace_capability(
-                model, robot, coils.max_current, model.coils.workspace_half_width
-            )
-            return cap.typical_force, cap.typical_field * robot.moment
+    def compute(model: PlanarFieldModel) -> tuple[float, float]:
+        cap = workspace_capability(
+            model, robot, coils.max_current, model.coils.workspace_half_width
+        )
+        return cap.typical_force, cap.typical_field * robot.moment
 
-        force, torque = remembered("typical_wrench", _answer_inputs(coils, robot), numbers, 2)
-        return force, torque
-
-    return _remembered(_WRENCH, coils, None, robot, compute)
-
-
-def _answer_inputs(
-    coils: CoilSystem, robot: RobotParams, reference: Trajectory | None = None
-) -> tuple[bytes, ...]:
-    """What an answer kept in the machine's cache (:mod:`magrun.answers`) depends on: the
-    system's files by content, its limits, the robot and the reference's knots."""
-    from magrun.answers import files_digest
-
-    knots = () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
-    return (files_digest(coils.folder).encode(), *_limits_and_robot(coils, robot), *knots)
+    force, torque = _remembered(_WRENCH, "typical_wrench", coils, None, robot, 2, compute)
+    return force, torque
 
 
 def planned_reference(
@@ -607,24 +593,19 @@ def planned_reference(
     its own heading throughout; and how many times over they give its velocity (median).
     Remembered in the process and in the machine's cache (the heading offsets and the
     factor: :mod:`magrun.answers`)."""
-    from magrun.answers import remembered
     from magrun.field.capability import HELD_SAMPLES, held_reference, held_trajectory
 
-    def compute(lut: Callable[[], PlanarFieldModel]) -> tuple[Trajectory | None, float]:
-        def numbers() -> tuple[float, ...]:
-            held = held_reference(lut(), robot, coils.max_current, reference)
-            return (held.median_factor, *held.offsets)
+    def compute(model: PlanarFieldModel) -> tuple[float, ...]:
+        held = held_reference(model, robot, coils.max_current, reference)
+        return (held.median_factor, *held.offsets)
 
-        inputs = _answer_inputs(coils, robot, reference)
-        factor, *kept = remembered("planned_headings", inputs, numbers, 1 + HELD_SAMPLES)
-        offsets = np.array(kept)
-        return (held_trajectory(reference, offsets) if offsets.any() else None), factor
-
-    held, factor = _remembered(_PLANNED, coils, reference, robot, compute)
-    # None: the coils hold the reference's own headings, and the planned reference is the
-    # object asked about (not an equal one remembered from another trial: trials compare
-    # the two objects to know whether the headings were turned)
-    return (reference if held is None else held), factor
+    factor, *kept = _remembered(
+        _PLANNED, "planned_headings", coils, reference, robot, 1 + HELD_SAMPLES, compute
+    )
+    offsets = np.array(kept)
+    # the reference asked about itself (not an equal one of another trial's: trials compare
+    # the two objects to know whether the headings were turned) where the coils hold its own
+    return (held_trajectory(reference, offsets) if offsets.any() else reference), factor
 
 
 #: check_reach's verdicts in this process (_remembered)
@@ -635,27 +616,18 @@ def check_reach(coils: CoilSystem, reference: Trajectory, robot: RobotParams) ->
     """A :class:`RunError` where the coils cannot move ``robot`` along ``reference`` (the
     nominal robot, the system's lookup-table model, its current limits). A reference they
     can is remembered in the process and in the machine's cache (:mod:`magrun.answers`)."""
-    from magrun.answers import remembered
-    from magrun.field.capability import TrajectoryCapability, trajectory_capability
+    from magrun.field.capability import trajectory_capability
 
-    def compute(lut: Callable[[], PlanarFieldModel]) -> TrajectoryCapability | None:
-        found: list[TrajectoryCapability] = []
+    def check(model: PlanarFieldModel) -> tuple[float]:
+        reach = trajectory_capability(model, robot, coils.max_current, reference, 200, True)
+        return (1.0 if reach.feasible else math.nan,)  # NaN: not kept in the machine's cache
 
-        def verdict() -> tuple[float]:
-            found.append(
-                trajectory_capability(lut(), robot, coils.max_current, reference, 200, True)
-            )
-            return (1.0 if found[0].feasible else math.nan,)  # NaN: not kept
-
-        kept = remembered("reachable", _answer_inputs(coils, robot, reference), verdict, 1)
-        if not found and kept != (1.0,):  # a kept number that is not the verdict
-            verdict()
-        return found[0] if found else None  # None: reachable, as the cache remembers
-
-    reach = _remembered(_REACH, coils, reference, robot, compute)
-    if reach is None or reach.feasible:
+    if _remembered(_REACH, "reachable", coils, reference, robot, 1, check) == (1.0,):
         return
-    if reach.feasible:
+    # what the coils cannot do, and where: checked again for the message
+    lut = load_system(coils.folder).models[1]
+    reach = trajectory_capability(lut, robot, coils.max_current, reference, 200, True)
+    if reach.feasible:  # a kept number that was not the verdict
         return
     k = len(reach.t) - 1  # the first pose out of reach
     x, y = reach.poses[k, :2] * 1e3
