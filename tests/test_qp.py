@@ -61,6 +61,21 @@ def test_unconstrained_optimum_is_the_normal_equations() -> None:
     assert_allclose(x, np.linalg.lstsq(M, r, rcond=None)[0], rtol=1e-9)
 
 
+def test_a_solve_daqp_does_not_finish_is_answered_by_bvls(monkeypatch: pytest.MonkeyPatch) -> None:
+    """DAQP's iteration limit (exit flag -4) stands in for any flag but optimal: the answer is
+    BVLS's, and the solve is counted."""
+    import magrun.control.qp as qp
+
+    M, r, lo, hi = _problem(3, 8, 12, 1e-2)
+    solve = BoxLeastSquares(8)
+    daqp_x = solve(M, r, lo, hi)
+    monkeypatch.setattr(qp.daqp, "solve", lambda *a, **k: (np.zeros(8), 0.0, -4, {}))
+    x = solve(M, r, lo, hi)
+    assert solve.fallbacks == 1
+    assert_allclose(x, bvls(M, r, lo, hi), rtol=0, atol=0)
+    assert_allclose(x, daqp_x, atol=1e-6 * (hi - lo).max())
+
+
 def test_wrong_size_is_refused() -> None:
     with pytest.raises(ValueError, match="columns"):
         BoxLeastSquares(8)(np.eye(4), np.zeros(4), -1, 1)
