@@ -103,6 +103,52 @@ def test_the_fallback_grid_holds_every_pose_that_fits_and_no_other(spine, where)
     assert 0 < inside < judged  # poses that fit and poses that do not were both judged
 
 
+@pytest.mark.parametrize(
+    ("outline", "robot"),
+    [("square", "magnet"), ("square", "drug_delivery"), ("spine_l3l4", "micro_magnet"),
+     ("channel_bends", "micro_magnet"), ("spine_l3l4", "drug_delivery")],
+)  # fmt: skip
+def test_a_centre_in_a_sure_cell_fits_at_every_heading(outline: str, robot: str) -> None:
+    """The shortcut of the projection's fit test: every pose whose centre lies in a sure cell
+    passes the measured test, at any heading (1,000 random poses in those cells, and the
+    corners of the cells at the region's edge at 8 headings). The 40 mm square's cells are
+    mostly sure, so the shortcut fires on most ticks of an open workspace; in the phantoms'
+    channels only a small robot has a few, and the drug-delivery capsule (longer than the
+    spine's channel is wide) has at most one: its poses are measured as before."""
+    body = load_robots()[robot]
+    if outline == "square":
+        fs = FreeSpace.square(0.02, body.length, body.diameter)
+    else:
+        phantom = load_phantom(PROTOCOLS / "phantoms" / f"{outline}.yaml")
+        fs = FreeSpace(phantom.boundaries, phantom.critical, body.length, body.diameter)
+    assert fs._sure is not None
+    x0, y0, pitch, sure = fs._sure
+    cells = np.argwhere(sure)
+    if outline == "square":
+        assert len(cells) > 0.2 * sure.size
+    elif robot == "micro_magnet":
+        assert 0 < len(cells) < 0.1 * sure.size
+    else:
+        assert len(cells) <= 1
+    if not len(cells):
+        return
+    rng = np.random.default_rng(5)
+    picked = cells[rng.integers(len(cells), size=1000)]
+    xy = np.array([x0, y0]) + (picked + rng.uniform(0, 1, picked.shape)) * pitch
+    poses = np.column_stack([xy, rng.uniform(-math.pi, math.pi, len(xy))])
+    assert all(fs._in_sure_cell(p) for p in poses)
+    # the cells at the sure region's edge (a neighbour not sure), where a wall is nearest
+    padded = np.pad(sure, 1)
+    inner = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
+    edge = cells[~inner[cells[:, 0], cells[:, 1]]]
+    corners = np.array([x0, y0]) + (edge[:, None] + [[0, 0], [1, 0], [0, 1], [1, 1]]) * pitch
+    corners = np.unique(corners.reshape(-1, 2), axis=0)
+    turns = np.repeat(np.arange(8) * math.pi / 8, len(corners))
+    poses = np.concatenate([poses, np.column_stack([np.tile(corners, (8, 1)), turns])])
+    for pose in poses:
+        assert fs._fits_measured(pose), pose
+
+
 def test_nearest_for_one_point_is_the_nearest_for_many_to_the_last_bit(spine: FreeSpace) -> None:
     """The one-point path (the NMPC's start, every tick) gives the vectorised one's nearest
     point and normal bit for bit: inside and outside the outline, on a vertex's normal, and
