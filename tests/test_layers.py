@@ -44,6 +44,44 @@ def test_the_probe_sees_a_heavy_import() -> None:
     assert "casadi" in loaded_after("import magrun.control.methods")
 
 
+def test_no_control_tick_imports_a_module() -> None:
+    """Whatever a trial's controller and tracker import, they import before the first tick,
+    not in one (an import in a tick is a stall of up to a second at the coils): in a fresh
+    interpreter, the spine with the proposed method (the Kalman filter's truncation at the
+    critical wall) and the noise protocol with Baseline 3 (the two-layer QPs and their
+    fallback), assembled, then run for 1 s each. The simulated plant's compiled code (Numba)
+    loads on its first call, and no hardware rig runs it: a copy of the trial's simulated
+    rig is advanced first, so that what it loads is not counted. The modules the fallbacks
+    use are in memory once the controller is built."""
+    code = (
+        "import copy, sys\n"
+        "import numpy as np\n"
+        "from magrun.protocol import load_protocol\n"
+        "from magrun.trial import assemble\n"
+        "new = []\n"
+        "for path, method, needed in (('protocols/spine.yaml', 'proposed', 'scipy.stats'),"
+        " ('protocols/noise.yaml', 'baseline3', 'scipy.optimize')):\n"
+        "    protocol = load_protocol(path, ('duration_s=1',))\n"
+        "    trial = next(t for t in protocol.expand() if t.method == method)\n"
+        "    parts = assemble(trial)\n"
+        "    assert needed in sys.modules, needed\n"
+        "    plant = copy.deepcopy(parts.rig)\n"
+        "    plant.reset(parts.scene.reference.pose(0.0))\n"
+        "    for k in range(25):\n"
+        "        plant.apply(np.full(plant.coils.n_channels, (-1.0) ** k))\n"
+        "        plant.advance(0.04)\n"
+        "    before = set(sys.modules)\n"
+        "    parts.run()\n"
+        "    new += sorted(set(sys.modules) - before)\n"
+        "print()\n"
+        "print(' '.join(new))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.splitlines()[-1].split() == []
+
+
 def _contract(name_start: str) -> tuple[dict, set[str]]:
     """The import-linter contract whose name starts so, and magrun's top-level modules."""
     import pkgutil

@@ -144,9 +144,7 @@ from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from numpy.typing import NDArray
-from scipy.stats import truncnorm
 
 from magrun.angles import angle_near
 from magrun.control.base import Estimator
@@ -263,6 +261,12 @@ class KalmanPoseFilter(Estimator):
         if (m := self._mobility) is not None:
             self.Q[m, m] = c.mobility**2
             self.P0[m, m] = c.initial_mobility**2
+        # imported here: filterpy's package imports scipy.stats (about a second of a fresh
+        # process's start-up), which a process running no Kalman filter never needs; with the
+        # filter, scipy.stats is then in memory before any tick (:meth:`truncate` uses it)
+        from filterpy.kalman import KalmanFilter
+        from scipy.stats import truncnorm  # noqa: F401
+
         self.kf = KalmanFilter(dim_x=n, dim_z=3)
         self.reset(np.zeros(3))
 
@@ -416,6 +420,8 @@ class KalmanPoseFilter(Estimator):
         sigma = math.sqrt(var)
         # the truncated normal of the offset from the current mean, in units of sigma
         a, b = lo / sigma, hi / sigma
+        from scipy.stats import truncnorm  # in memory since __init__: no tick waits for it
+
         mean, variance = truncnorm.stats(a, b, moments="mv")
         shift, ratio = float(mean) * sigma, float(variance)
         if not (math.isfinite(shift) and math.isfinite(ratio)):

@@ -29,7 +29,6 @@ from ctypes import c_int
 import daqp
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import lsq_linear
 
 FloatArray = NDArray[np.float64]
 #: DAQP's tolerance on the bounds' violation
@@ -40,6 +39,11 @@ _OPTIMAL = 1
 
 def bvls(M: FloatArray, r: FloatArray, lo: ArrayLike, hi: ArrayLike) -> FloatArray:
     """The reference: scipy's bounded-variable least squares on ``M`` directly."""
+    # imported here: scipy.optimize is most of a second of a fresh process's start-up, which
+    # a process with no two-layer controller never needs (BoxLeastSquares imports it when
+    # built, so that no control tick waits for the import)
+    from scipy.optimize import lsq_linear
+
     return np.asarray(lsq_linear(M, r, bounds=(lo, hi), method="bvls").x, dtype=np.float64)
 
 
@@ -56,6 +60,8 @@ class BoxLeastSquares:
         # ~1e-5 on 7 of 2000 random 60-variable problems); at 1e-10 every one was optimal to
         # 1e-11 at no measurable cost (tests/test_qp.py)
         self._no_rows = np.zeros((0, n))  # no general constraints: the bounds are simple ones
+        import scipy.optimize  # noqa: F401  (the fallback's, in memory before any tick)
+
         self.fallbacks = 0
 
     def __call__(self, M: FloatArray, r: FloatArray, lo: ArrayLike, hi: ArrayLike) -> FloatArray:

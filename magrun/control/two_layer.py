@@ -27,7 +27,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
 
 from magrun.angles import angle_near, wrap_angle
 from magrun.control.allocation import (
@@ -96,6 +95,8 @@ def linear_model_expm(robot: RobotParams, theta: float, dt: float) -> tuple[Floa
     Bc[5, 2] = 1 / robot.inertia
     aug = np.zeros((9, 9))
     aug[:6, :6], aug[:6, 6:] = Ac * dt, Bc * dt
+    from scipy.linalg import expm  # the reference only: scipy.linalg when it is asked for
+
     E = expm(aug)
     return E[:6, :6], E[:6, 6:]
 

@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import Bounds, LinearConstraint, milp
 
 from magrun.field.model import PlanarFieldModel
 from magrun.robot import RobotParams, drag_matrix
@@ -141,7 +140,11 @@ def pose_capability(
     cost[n] = -1.0
     # HiGHS through scipy's milp, every variable continuous: the LP linprog solves, by the
     # same solver (on 5472 LPs of the shipped systems and protocols the same speed factors,
-    # bit for bit), in about half the time (linprog's input checks are most of a call)
+    # bit for bit), in about half the time (linprog's input checks are most of a call).
+    # Imported here: scipy.optimize is a large part of a fresh process's start-up, and a
+    # process whose answers are in the machine's cache (magrun.answers) solves no LP
+    from scipy.optimize import Bounds, LinearConstraint, milp
+
     result = milp(
         cost,
         constraints=LinearConstraint(

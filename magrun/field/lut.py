@@ -14,16 +14,18 @@ the whole workspace, so only infeasible iterates of an optimiser ever go there.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import RegularGridInterpolator
 
 from magrun.field.coils import CoilSystem
 from magrun.field.model import PlanarFieldModel
 from magrun.field.reference import FieldMap, ReferenceMaps
+
+if TYPE_CHECKING:
+    from scipy.interpolate import RegularGridInterpolator
 
 FloatArray = NDArray[np.float64]
 
@@ -67,6 +69,16 @@ class _UniformGrid:
         )
 
 
+def _scipy_grid(x: FloatArray, y: FloatArray, table: FloatArray) -> RegularGridInterpolator:
+    """scipy's interpolator for an unevenly spaced grid (imported here: scipy.interpolate is
+    half a second of a fresh process's start-up, and evenly spaced grids never need it)."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    return RegularGridInterpolator(
+        (x, y), table, method="linear", bounds_error=False, fill_value=None
+    )
+
+
 class LookupTableFieldModel(PlanarFieldModel):
     """Bilinear interpolation of reference field and gradient tables."""
 
@@ -81,10 +93,8 @@ class LookupTableFieldModel(PlanarFieldModel):
         ):
             fmap = reference[coil_type]
             table = _table(fmap)
-            self._numpy[coil_type] = _UniformGrid.of(fmap.x, fmap.y, table) or (
-                RegularGridInterpolator(
-                    (fmap.x, fmap.y), table, method="linear", bounds_error=False, fill_value=None
-                )
+            self._numpy[coil_type] = _UniformGrid.of(fmap.x, fmap.y, table) or _scipy_grid(
+                fmap.x, fmap.y, table
             )
             # CasADi wants the outputs fastest, then x, then y
             self._casadi[coil_type] = ca.interpolant(

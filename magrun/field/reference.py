@@ -29,16 +29,20 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import magpylib as mp
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from magrun import atomic
 from magrun.field.coils import LIMIT_KEYS, CoilSystem, CoilTypeSpec
 from magrun.yamlio import read_npz, safe_json
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
+
+# magpylib (and scipy.spatial with it) is imported where the maps are computed: two thirds of
+# a second of every fresh process's start-up, where the maps are only read
 
 MU0 = 4e-7 * np.pi  # T m / A; magpylib uses the CODATA value, 1e-10 relative difference
 DEFAULT_SHEETS = 12
@@ -158,6 +162,8 @@ def default_reference_path() -> Path:
 def _base_stack_pose(coil: CoilTypeSpec) -> tuple[tuple[float, float, float], Rotation]:
     # magpylib cylinders have their axis on local +z; turn it onto -y, i.e. pointing from the
     # base-stack coil at (0, center) toward the workspace centre.
+    from scipy.spatial.transform import Rotation
+
     return (0.0, coil.center, 0.0), Rotation.from_rotvec([np.pi / 2, 0.0, 0.0])
 
 
@@ -180,6 +186,8 @@ def thick_coil_field(
     ndarray, shape (n, 3)
         B in tesla per ampere.
     """
+    import magpylib as mp
+
     obs = np.atleast_2d(np.asarray(observers, dtype=np.float64))
     a, b = coil.inner_radius, coil.outer_radius
     nodes, weights = np.polynomial.legendre.leggauss(sheets)
@@ -238,6 +246,8 @@ def compute_reference_maps(
         name: reference_field_map(spec, coils.workspace_half_width, pitch, sheets)
         for name, spec in coils.coil_types.items()
     }
+    import magpylib as mp
+
     meta = {
         "source": "magpylib thick-solenoid current-sheet model (magrun.field.reference)",
         "magpylib_version": mp.__version__,
