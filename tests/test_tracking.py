@@ -217,6 +217,31 @@ def test_shapes_rasterised_together_are_each_rasterised_as_alone() -> None:
             assert np.array_equal(raster[1], alone[1])
 
 
+@pytest.mark.parametrize("name", ["magnet", "drug_delivery"])
+def test_a_blurred_frames_poses_are_shaped_together_as_each_alone(robots, name: str) -> None:
+    """The renderer works out the robot's shapes at every pose of a motion-blurred exposure
+    at once; each pose's outlines come out to the last bit as that pose's alone, and the
+    capsule's stadiums as :func:`_stadium` draws one (the walls' own). 1 to 6 poses, 200
+    exposures, both appearances."""
+    from magrun.tracking.render import _stadium, _stadiums, robot_shapes, robot_shapes_at
+
+    robot, cam = robots[name], Camera()
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        k = int(rng.integers(1, 7))
+        poses = np.column_stack([rng.uniform(-0.04, 0.04, (k, 2)), rng.uniform(-9, 9, k)])
+        for pose, together in zip(poses, robot_shapes_at(cam, poses, robot), strict=True):
+            alone = robot_shapes(cam, pose, robot)
+            assert [s[1:] for s in together] == [s[1:] for s in alone]
+            for (a, _, _), (b, _, _) in zip(together, alone, strict=True):
+                assert a.shape == b.shape
+                assert np.array_equal(a, b)
+        a, b = rng.uniform(0, 60, (k, 2)), rng.uniform(0, 60, (k, 2))
+        r = float(rng.uniform(0.5, 5))
+        for i, outline in enumerate(_stadiums(a, b, r)):
+            assert np.array_equal(outline, _stadium(a[i], b[i], r))
+
+
 @pytest.mark.parametrize("theta", [0.0, 0.7, 2.0, -2.6])
 def test_rendered_magnet_robot_matches_its_labels(robots, theta: float) -> None:
     """Pink front half around c + L/4·u, yellow rear half around c − L/4·u.
