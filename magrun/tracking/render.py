@@ -158,20 +158,12 @@ def _stadium(a: FloatArray, b: FloatArray, radius: float) -> FloatArray:
     """The set of points within ``radius`` px of segment a–b as one convex outline: two
     half-circles of :data:`_ARC` edges each, the radius scaled so the polygon's area is the
     round shape's (OpenCV's filled circles cover ~π(r + ½)²)."""
-    d = b - a
-    angle = math.atan2(d[1], d[0])
-    r = radius * math.sqrt(math.pi / (_ARC * math.sin(math.pi / _ARC)))
-    arc_b = angle - math.pi / 2 + _HALF_TURN
-    arc_a = angle + math.pi / 2 + _HALF_TURN
-    return np.concatenate(
-        [b + r * np.column_stack([np.cos(arc_b), np.sin(arc_b)]),
-         a + r * np.column_stack([np.cos(arc_a), np.sin(arc_a)])]
-    )  # fmt: skip
+    return _stadiums(np.asarray(a)[None], np.asarray(b)[None], radius)[0]
 
 
 def _stadiums(a: FloatArray, b: FloatArray, radius: float) -> FloatArray:
-    """:func:`_stadium` of each segment a[i]–b[i] ((k, 2) each), (k, 2 (ARC + 1), 2): the same
-    numbers as one at a time."""
+    """:func:`_stadium` of each segment a[i]–b[i] ((k, 2) each), (k, 2 (ARC + 1), 2), each
+    the same numbers as alone."""
     d = b - a
     angle = np.array([math.atan2(dy, dx) for dx, dy in d])[:, None]
     r = radius * math.sqrt(math.pi / (_ARC * math.sin(math.pi / _ARC)))
