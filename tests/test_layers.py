@@ -49,13 +49,13 @@ def test_no_control_tick_imports_a_module() -> None:
     not in one (an import in a tick is a stall of up to a second at the coils): in a fresh
     interpreter, the spine with the proposed method (the Kalman filter's truncation at the
     critical wall) and the noise protocol with Baseline 3 (the two-layer QPs and their
-    fallback), assembled, then run for 1 s each. The simulated plant's compiled code (Numba)
-    loads on its first call, and no hardware rig runs it: a copy of the trial's simulated
-    rig is advanced first, so that what it loads is not counted. The modules the fallbacks
-    use are in memory once the controller is built."""
+    fallback), assembled, then run for 1 s each. The modules the fallbacks use are in memory
+    once the controller is built, and Numba's once the simulated plant is (magrun.rigs.kernel).
+    What a machine compiles once (the NMPC's kernel, the plant's Numba code: `magrun build`)
+    is compiled by a first interpreter running the same, so that the second one checked loads
+    it from the cache, as every trial after the first on a machine does."""
     code = (
-        "import copy, sys\n"
-        "import numpy as np\n"
+        "import sys\n"
         "from magrun.protocol import load_protocol\n"
         "from magrun.trial import assemble\n"
         "new = []\n"
@@ -65,20 +65,16 @@ def test_no_control_tick_imports_a_module() -> None:
         "    trial = next(t for t in protocol.expand() if t.method == method)\n"
         "    parts = assemble(trial)\n"
         "    assert needed in sys.modules, needed\n"
-        "    plant = copy.deepcopy(parts.rig)\n"
-        "    plant.reset(parts.scene.reference.pose(0.0))\n"
-        "    for k in range(25):\n"
-        "        plant.apply(np.full(plant.coils.n_channels, (-1.0) ** k))\n"
-        "        plant.advance(0.04)\n"
         "    before = set(sys.modules)\n"
         "    parts.run()\n"
         "    new += sorted(set(sys.modules) - before)\n"
         "print()\n"
         "print(' '.join(new))\n"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
-    )
+    for _ in ("build", "check"):
+        out = subprocess.run(
+            [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
+        )
     assert out.stdout.splitlines()[-1].split() == []
 
 

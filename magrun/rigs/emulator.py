@@ -157,9 +157,10 @@ class RigEmulator:
             self._sim_t = now
 
     def _trip(self, at: float) -> None:
-        self.state = "watchdog"
-        self.tripped_at = at
+        # the currents first: whoever sees the state "watchdog" sees them commanded to zero
         self.rig.apply(np.zeros(len(self.rig.channel_names)))  # the amplifiers ramp down
+        self.tripped_at = at
+        self.state = "watchdog"
 
     def _clock(self) -> None:
         while not self._stop.wait(self.step_s):

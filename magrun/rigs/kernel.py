@@ -346,3 +346,15 @@ def resolve_capsule(
                 om += rxt * dv / rotational_drag
     state[0], state[1], state[2], state[3], state[4], state[5] = x, y, th, vx, vy, om
     return touched
+
+
+def _load_numba() -> None:
+    """Numba's first call in a process imports its compiler's modules and reads its caches:
+    0.6–1.7 s on the 2-core development machine. Made here, when the simulated rig imports
+    this module, with one of the plant's own functions at its real signature (its cached code
+    or a compile of it), so that no tick, and no first reply of an emulated rig, waits for it
+    (the other functions then load their cached code in milliseconds)."""
+    ou_path(np.zeros(1), 0.0, 0.0, np.zeros((1, 1)))
+
+
+_load_numba()
