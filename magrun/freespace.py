@@ -381,9 +381,7 @@ class FreeSpace:
         (no wall within its reach) and every disk of a body centred there, at most the half axis
         from its centre, is 1.05 D/2 clear of every wall. Cells the body cannot be sure of (all,
         in a channel narrower than the body is long) are measured as before."""
-        outline = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
-        lo, hi = outline.min(axis=0), outline.max(axis=0)
-        pitch = max(0.5e-3, float(np.max(hi - lo)) / 60)
+        lo, hi, pitch = self._grid_box()
         n = np.maximum(np.ceil((hi - lo) / pitch).astype(int), 1)
         ii, jj = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
         centres = np.stack([lo[0] + (ii + 0.5) * pitch, lo[1] + (jj + 0.5) * pitch], axis=-1)
@@ -405,10 +403,16 @@ class FreeSpace:
         best[2] = pose[2] + float(dth[int(np.argmin(cost))])
         return best
 
-    def _fitting_poses(self, headings: int = 16) -> FloatArray:
+    def _grid_box(self) -> tuple[FloatArray, FloatArray, float]:
+        """The outline's bounding box (lower and upper corners, m) and the pitch of the grids
+        laid over it (:meth:`_fitting_poses`, :meth:`_sure_cells`): 0.5 mm, or 1/60 of the
+        box where that is coarser."""
         outline = np.concatenate([s[:, 0] for s, _ in self._segments.values()])
         lo, hi = outline.min(axis=0), outline.max(axis=0)
-        pitch = max(0.5e-3, float(np.max(hi - lo)) / 60)
+        return lo, hi, max(0.5e-3, float(np.max(hi - lo)) / 60)
+
+    def _fitting_poses(self, headings: int = 16) -> FloatArray:
+        lo, hi, pitch = self._grid_box()
         xs = np.arange(lo[0], hi[0] + pitch, pitch)
         ys = np.arange(lo[1], hi[1] + pitch, pitch)
         grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
