@@ -64,6 +64,8 @@ class TrialLog:
     stop_reason: str = ""  # why the safety layer stopped the trial ("" : it ran to the end)
     #: (n,) whether the tick took a camera frame (always, without a tracker or frame_due)
     framed: NDArray[np.bool_] | None = None
+    #: CPU seconds of the loop's thread in each stage (:data:`STAGES`), summed over the ticks
+    stage_cpu_s: dict[str, float] | None = None
 
     @property
     def tracking_lost(self) -> int:
@@ -115,6 +117,15 @@ class TrialLog:
     @property
     def solve_times(self) -> FloatArray:
         return np.array([s.solve_time for s in self.status])
+
+
+#: the stages of a tick whose CPU time :func:`run_trial` adds up (``TrialLog.stage_cpu_s``):
+#: the rig's observation (in simulation: rendering the camera frame), tracking the frame,
+#: the feedback and the controller's step, the plant (the safety layer, applying the
+#: currents, advancing the rig: in simulation the plant's integration), handing the tick
+#: to the recorder, the controller's preparation of the next tick, and the rest of the loop
+#: (its own bookkeeping)
+STAGES = ("observe", "track", "control", "plant", "record", "prepare", "loop")
 
 
 def run_trial(
@@ -169,6 +180,10 @@ def run_trial(
     ``stop()`` is asked after every tick: when true, the safety layer trips ("interrupted"),
     the currents ramp to zero as above, and the trial ends early (``TrialLog.interrupted``;
     :mod:`magrun.interrupt`).
+
+    The loop thread's CPU time in each of :data:`STAGES` is summed in
+    ``TrialLog.stage_cpu_s`` (``time.thread_time``: what the stage cost, not what the
+    machine's load made it wait).
     """
     dt = controller.dt
     if safety is None:
@@ -197,9 +212,15 @@ def run_trial(
     declared = 0.0 if measured else float(latency)
     k, t = 0, 0.0
     interrupted = False
+    cpu = time.thread_time
+    spent = dict.fromkeys(STAGES, 0.0)
+    loop_start = cpu()
     while t <= total + 1e-9 or (safety.tripped and not safety.at_rest):
         take = tracker is None or frame_due is None or frame_due(t)
+        c0 = cpu()
         obs = rig.observe(frame=take and tracker is not None)
+        c1 = cpu()
+        spent["observe"] += c1 - c0
         t0 = clock()
         camera_pose: FloatArray | None = None
         if tracker is None:  # the rig's pose (NaN: its own tracking lost the robot)
@@ -211,6 +232,8 @@ def run_trial(
             raise ValueError("a tracker needs camera frames: give the rig a camera")
         else:
             camera_pose = tracker(obs.frame)
+        c2 = cpu()
+        spent["track"] += c2 - c1
         z = feedback(obs.t, camera_pose) if take else None
         # the plan starts when its currents apply, the controller's latency from now
         window = plan.pose(obs.t + lead + offsets)
@@ -219,12 +242,16 @@ def run_trial(
         age = obs.t - obs.frame_time if z is not None and obs.frame_time is not None else 0.0
         out = controller.step(z, window, age)
         c = clock() - t0
+        c3 = cpu()
+        spent["control"] += c3 - c2
         charged = c if measured else declared
         period = max(dt, charged)
         if charged > 0:
             rig.advance(charged)  # the previous currents drive the plant meanwhile
         safety.check(obs.t, obs.pose, (camera_pose is not None) if take else None)
         applied = rig.apply(safety.limit(out.currents, out.fault, obs.t))
+        c4 = cpu()
+        spent["plant"] += c4 - c3
         tick = Tick(
             k=k, t=obs.t, actual=obs.pose, tracked=camera_pose if tracker is not None else None,
             measured=z, estimated=out.estimate, predicted=prediction, desired=desired,
@@ -245,8 +272,11 @@ def run_trial(
         statuses.append(out.status)
         compute.append(c)
         taken.append(take)
+        c5 = cpu()
         if on_tick is not None:
             on_tick(tick)
+        c6 = cpu()
+        spent["record"] += c6 - c5
         prediction = out.predicted
         rest = period - charged
         # the next tick's work that needs no measurement, while the plant runs on; its time
@@ -254,8 +284,11 @@ def run_trial(
         # same order), so that the next tick's window is the prepared one to the bit
         t_next = obs.t + charged + rest if charged > 0 and rest > 0 else obs.t + period
         controller.prepare(plan.pose(t_next + lead + offsets))
+        c7 = cpu()
+        spent["prepare"] += c7 - c6
         if rest > 0:
             rig.advance(rest)
+        spent["plant"] += cpu() - c7
         t = obs.t + period
         k += 1
         if progress is not None:
@@ -267,6 +300,7 @@ def run_trial(
             break
     if progress is not None and k < n_nominal and not safety.tripped:
         progress(n_nominal, n_nominal)
+    spent["loop"] = max(cpu() - loop_start - sum(spent.values()), 0.0)
     arrays = {name: np.stack(rows[name]) for name in _LOG_ARRAYS}
     return TrialLog(
         **{name: arrays[name] for name in _LOG_ARRAYS if name != "t"},
@@ -276,6 +310,7 @@ def run_trial(
         interrupted=interrupted,
         stop_reason=safety.reason,
         framed=np.array(taken, dtype=bool),
+        stage_cpu_s=spent,
     )
 
 

@@ -50,6 +50,7 @@ import numpy as np
 
 from magrun import interrupt
 from magrun.atomic import LOCK_NAME, FolderBusy, FolderLock, write_text
+from magrun.loop import STAGES
 from magrun.protocol import Protocol, Trial
 from magrun.realtime import cpu_split, loop_placement
 from magrun.scene import Trajectory
@@ -107,6 +108,7 @@ def execute_trial(
     if interrupt.requested() is not None:
         return entry  # stopping: a trial not yet started stays pending (--resume runs it)
     t0 = time.perf_counter()
+    cpu0 = (time.thread_time(), time.process_time())
     base = Path(out) / trial.relpath
     recorder = None
     parts = None
@@ -171,11 +173,13 @@ def execute_trial(
             (lambda done, total: progress(trial.relpath, done, total)) if progress else None
         )
         placement = loop_placement(cores[0] if cores else None) if not sim else nullcontext("")
+        loop_start = time.thread_time()
         with _inference_threads(1), placement as scheduling:
             log = parts.run(
                 on_tick=recorder.log, progress=tick_progress,
                 stop=lambda: interrupt.requested() is not None,
             )  # fmt: skip
+        loop_cpu = (loop_start, time.thread_time())
         safety = parts.safety
         status = "interrupted" if log.interrupted else "stopped" if log.stop_reason else "ok"
         health, warnings = trial_health(
@@ -209,6 +213,7 @@ def execute_trial(
             **health,
             warnings=warnings,
         )
+        entry["cpu_s"] = cpu_breakdown(cpu0, loop_cpu, log.stage_cpu_s or {})
         if not sim:
             entry["hardware"] = the_rig.report()  # a real rig's link statistics
             entry["loop_scheduling"] = scheduling
@@ -223,6 +228,30 @@ def execute_trial(
                 parts.rig.disconnect()
     entry["wall_s"] = time.perf_counter() - t0
     return entry
+
+
+#: a trial's CPU seconds in the manifest (``cpu_s``): the trial's set-up (assembling it,
+#: opening the recording), the loop's stages (:data:`magrun.loop.STAGES`), its finish
+#: (closing the recording, the health figures), the process's other threads meanwhile (the
+#: recorder's writer, Rerun's and ONNX Runtime's threads), and the total
+CPU_PARTS = ("setup", *STAGES, "finish", "other_threads", "total")
+
+
+def cpu_breakdown(
+    start: tuple[float, float], loop: tuple[float, float], stages: dict[str, float]
+) -> dict[str, float]:
+    """The trial's ``cpu_s`` (:data:`CPU_PARTS`) from its start's ``(thread_time,
+    process_time)``, the loop's ``thread_time`` before and after, and the loop's stages."""
+    now = (time.thread_time(), time.process_time())
+    out = {"setup": loop[0] - start[0]}
+    out.update({name: stages.get(name, 0.0) for name in STAGES})
+    # the loop's own part: the rest of the call that ran it (the trial's reset before its
+    # first tick and the log's arrays after the last included)
+    out["loop"] = max(loop[1] - loop[0] - sum(out[name] for name in STAGES if name != "loop"), 0)
+    out["finish"] = now[0] - loop[1]
+    out["other_threads"] = max(now[1] - start[1] - (now[0] - start[0]), 0.0)
+    out["total"] = now[1] - start[1]
+    return {k: round(v, 4) for k, v in out.items()}
 
 
 def _latency_ms(latency: float | str) -> float | str:

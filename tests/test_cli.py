@@ -416,6 +416,23 @@ def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
     assert row["failed"] == 0
     assert row["trials_per_min"] == pytest.approx(row["trials"] / row["wall_s"] * 60)
     assert doc["total"]["trials"] == 4
+    # where the trials' CPU went: the manifest's per trial, summed; each trial's parts add up
+    # to its total (the process's CPU over the trial)
+    from magrun.runner import CPU_PARTS
+
+    entries = json.loads((tmp_path / "tiny" / "manifest.json").read_text())["trials"]
+    for entry in entries:
+        cpu = entry["cpu_s"]
+        assert list(cpu) == list(CPU_PARTS)
+        assert min(cpu.values()) >= 0
+        assert sum(v for k, v in cpu.items() if k != "total") == pytest.approx(
+            cpu["total"], abs=1e-3
+        )
+        assert cpu["track"] < cpu["control"]  # no tracker: the truth into the mimic
+    for part in CPU_PARTS:
+        summed = sum(e["cpu_s"][part] for e in entries)
+        assert row["cpu_s"][part] == pytest.approx(summed, abs=2e-3)
+        assert doc["total"]["cpu_s"][part] == pytest.approx(summed, abs=2e-3)
     files = sorted((tmp_path / "tiny").rglob("*.mcap"))
     assert len(files) == 4
     for file in files:

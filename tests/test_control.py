@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -369,6 +370,41 @@ def test_a_latency_aware_loop_records_the_reference_of_the_observation_time(
         log = run_trial(c, rig, reference, duration=1.0, latency=0.015)
         assert_allclose(log.desired, reference.pose(log.t), rtol=0, atol=1e-15)
         assert c.latency == lead
+
+
+def _burn(seconds: float) -> None:
+    """Spend ``seconds`` of this thread's CPU time (however loaded the machine)."""
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+def test_the_loop_charges_each_stage_its_own_cpu_time(coils, channel_grid, magnet_robot) -> None:
+    """A feedback function and a recorder hook that each spend a known CPU time per tick:
+    the control stage holds at least the feedback's, the record stage the hook's and little
+    more, and no other stage either of them (CPU time of the loop's thread: a loaded machine
+    stretches the wall time, not these)."""
+    from magrun.loop import STAGES
+
+    feed, record = 0.004, 0.006  # s of CPU per tick
+
+    def slow_feedback(t: float, pose: np.ndarray | None) -> np.ndarray | None:
+        _burn(feed)
+        return pose
+
+    c = make_controller("baseline3", magnet_robot, ControlConfig(dt=1 / 25.5))
+    rig = SimRig(coils, channel_grid, magnet_robot, seed=2)
+    log = run_trial(
+        c, rig, s_trajectory(), feedback=slow_feedback, duration=1.0,
+        on_tick=lambda tick: _burn(record),
+    )  # fmt: skip
+    spent, n = log.stage_cpu_s, len(log.t)
+    assert spent is not None
+    assert set(spent) == set(STAGES)
+    assert spent["control"] >= n * feed
+    assert n * record <= spent["record"] < n * (record + 0.001)
+    for stage in ("observe", "track", "plant", "prepare", "loop"):
+        assert 0 <= spent[stage] < n * feed, (stage, spent)
 
 
 class _AffinePlanner(_DriftPlanner):

@@ -22,15 +22,23 @@ def bench_campaign(
 
     Figures per protocol: trials, ``wall_s`` (from the campaign's start to the protocol's
     last trial done: protocols overlap), failed trials, dropped recorder ticks, control ticks
-    that overran their period, ticks, and the recordings' size; in total the same, with the
-    campaign's wall time and trials per minute. ``feedback`` "camera" or "truth" overrides
-    every protocol's ``feedback.camera`` (None: as the files say).
+    that overran their period, ticks, the recordings' size, and ``cpu_s``, where the trials'
+    CPU time went (the manifests' ``cpu_s`` summed: set-up, each stage of the loop, finish,
+    the recorder's and libraries' threads; :data:`magrun.runner.CPU_PARTS`); in total the
+    same, with the campaign's wall time and trials per minute. ``feedback`` "camera" or
+    "truth" overrides every protocol's ``feedback.camera`` (None: as the files say).
     """
     import concurrent.futures as cf
     from pathlib import Path
 
     from magrun.protocol import load_protocol
-    from magrun.runner import pool_executor, run_protocol, shared_pool
+    from magrun.runner import CPU_PARTS, pool_executor, run_protocol, shared_pool
+
+    def cpu_sum(entries: list[dict[str, Any]]) -> dict[str, float]:
+        return {
+            part: round(sum(float((e.get("cpu_s") or {}).get(part, 0.0)) for e in entries), 3)
+            for part in CPU_PARTS
+        }
 
     if feedback not in (None, "camera", "truth"):
         raise ValueError(f"feedback must be camera or truth, got {feedback!r}")
@@ -85,6 +93,7 @@ def bench_campaign(
             "ticks": sum(int(t.get("ticks") or 0) for t in trials),
             "trial_wall_s": sum(float(t.get("wall_s") or 0.0) for t in trials),
             "recordings_mb": size / 1e6,
+            "cpu_s": cpu_sum(trials),
         }
     wall = time.perf_counter() - total_start
     rows = result["protocols"].values()
@@ -96,16 +105,26 @@ def bench_campaign(
         "dropped_ticks": sum(r["dropped_ticks"] for r in rows),
         "overrun_ticks": sum(r["overrun_ticks"] for r in rows),
         "recordings_mb": sum(r["recordings_mb"] for r in rows),
+        "cpu_s": cpu_sum([{"cpu_s": r["cpu_s"]} for r in rows]),
     }
     return result
 
 
 def summary(result: dict[str, Any]) -> list[str]:
     """The result as lines for a terminal."""
-    return [
+    lines = [
         f"{name:>18}: {r['trials']} trials in {r['wall_s'] / 60:.1f} min"
         f" ({r['trials_per_min']:.1f}/min), {r['failed']} failed,"
         f" {r['dropped_ticks']} dropped, {r['overrun_ticks']} overruns,"
         f" {r['recordings_mb']:.0f} MB"
         for name, r in [*result["protocols"].items(), ("total", result["total"])]
     ]
+    cpu = result["total"]["cpu_s"]
+    total = cpu["total"] or 1.0
+    parts = ", ".join(
+        f"{part} {seconds:.0f} s ({seconds / total:.0%})"
+        for part, seconds in cpu.items()
+        if part != "total"
+    )
+    lines.append(f"{'trials CPU':>18}: {cpu['total'] / 60:.1f} min: {parts}")
+    return lines
