@@ -24,8 +24,7 @@ from dataclasses import dataclass, field
 
 from magrun.compiled import CC, CompileWarning, cache_dir, compilation_enabled
 from magrun.protocol import Protocol, Trial
-from magrun.tracking.inference import inference_threads
-from magrun.trial import assemble, controller_tuning, system_of
+from magrun.trial import assemble, controller_tuning, system_of, trial_threads
 
 #: control ticks each variant runs: the first tick builds the plan, the second reuses it
 TICKS = 2
@@ -75,7 +74,7 @@ def build(
     for protocol in protocols:
         trials = variants(protocol, quick)
         for k, trial in enumerate(trials):
-            with warnings.catch_warnings(record=True) as caught, inference_threads(1):
+            with warnings.catch_warnings(record=True) as caught, trial_threads(1):
                 warnings.simplefilter("always", CompileWarning)
                 assemble(trial).run()
             for w in caught:

@@ -37,7 +37,6 @@ import math
 import multiprocessing
 import os
 import shutil
-import sys
 import threading
 import time
 import traceback
@@ -62,30 +61,12 @@ from magrun.trial import (
     check_system,
     coil_gains_of,
     handshake,
+    trial_threads,
 )
 from magrun.yamlio import YamlModelError, read_text_file, safe_json
 
 RIGS = ("sim", "hardware")
 ProgressFn = Callable[[str, int, int], None]  # (trial relpath, ticks done, ticks total)
-
-
-@contextmanager
-def _inference_threads(n: int) -> Iterator[None]:
-    """``n`` threads for the tracker's network per trial (ONNX Runtime, and torch where a
-    caller has loaded it): results then do not depend on the thread count. Tracking needs
-    no torch (:mod:`magrun.tracking.inference`); this never imports it."""
-    from magrun.tracking.inference import inference_threads
-
-    torch = sys.modules.get("torch")
-    before = torch.get_num_threads() if torch is not None else None
-    if torch is not None:
-        torch.set_num_threads(n)
-    try:
-        with inference_threads(n):
-            yield
-    finally:
-        if torch is not None and before is not None:
-            torch.set_num_threads(before)
 
 
 def execute_trial(
@@ -114,7 +95,7 @@ def execute_trial(
     parts = None
     sim = rig == "sim"
     try:
-        with _inference_threads(1):  # the tracker's network is made here, with its threads
+        with trial_threads(1):  # the tracker's network is made here, with its threads
             parts = assemble(trial, rig)
         protocol, scene, robot = trial.protocol, parts.scene, parts.robot
         controller, the_rig, tracker = parts.controller, parts.rig, parts.tracker
@@ -174,7 +155,7 @@ def execute_trial(
         )
         placement = loop_placement(cores[0] if cores else None) if not sim else nullcontext("")
         loop_start = time.thread_time()
-        with _inference_threads(1), placement as scheduling:
+        with trial_threads(1), placement as scheduling:
             log = parts.run(
                 on_tick=recorder.log, progress=tick_progress,
                 stop=lambda: interrupt.requested() is not None,
@@ -351,7 +332,7 @@ def _worker_init(progress: Any = None) -> None:
     _progress_queue = progress
     import cv2
 
-    cv2.setNumThreads(1)  # the tracker's network: one thread per trial (_inference_threads)
+    cv2.setNumThreads(1)  # the tracker's network: one thread per trial (trial_threads)
 
 
 def _pool_progress(q: Any) -> ProgressFn:

@@ -26,8 +26,10 @@ measured prediction error where the protocol says ``robot``).
 from __future__ import annotations
 
 import math
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -68,6 +70,32 @@ FloatArray = NDArray[np.float64]
 
 class RunError(RuntimeError):
     """A run that cannot start (bad output folder, unavailable rig); nothing was written."""
+
+
+@contextmanager
+def trial_threads(n: int) -> Iterator[None]:
+    """``n`` threads per trial for the libraries that would start their own: the tracker's
+    network (ONNX Runtime, and torch where a caller has loaded it; results then do not depend
+    on the thread count) and the linear algebra (the BLAS that NumPy and SciPy loaded,
+    through threadpoolctl). A trial's matrices are small: OpenBLAS's threads then mostly
+    spin waiting for work, and took more CPU than the whole loop in a Baseline 3 trial
+    (3.7 of 9.5 s), beside the loop on its other core, where a campaign's second worker or
+    a rig's recorder runs. Libraries loaded inside are limited by the next call. Tracking
+    needs no torch (:mod:`magrun.tracking.inference`); this never imports it."""
+    from threadpoolctl import threadpool_limits
+
+    from magrun.tracking.inference import inference_threads
+
+    torch = sys.modules.get("torch")
+    before = torch.get_num_threads() if torch is not None else None
+    if torch is not None:
+        torch.set_num_threads(n)
+    try:
+        with inference_threads(n), threadpool_limits(limits=n, user_api="blas"):
+            yield
+    finally:
+        if torch is not None and before is not None:
+            torch.set_num_threads(before)
 
 
 # --------------------------------------------------------------------------------------------

@@ -52,8 +52,7 @@ def bench_tick(
     import cv2
 
     from magrun.protocol import Conditions, Sweep, load_protocol
-    from magrun.tracking.inference import inference_threads
-    from magrun.trial import assemble, single_trial
+    from magrun.trial import assemble, single_trial, trial_threads
 
     cv2.setNumThreads(1)
     protocol = load_protocol(protocol_file)
@@ -70,7 +69,7 @@ def bench_tick(
             "duration_s": (ticks - 1) / controller.rate_hz,  # ticks at 0, dt, …
         }
     )
-    with inference_threads(1):  # the tracker's network, as in a run's trial
+    with trial_threads(1):  # the tracker's network and the BLAS, as in a run's trial
         parts = assemble(single_trial(protocol, method, first.seed))
     stages: dict[str, list[float]] = {name: [] for name in STAGES}
     rig, controller_ = parts.rig, parts.controller
@@ -81,7 +80,8 @@ def bench_tick(
     plant: list[float] = []
     rig.apply = _timed(rig.apply, plant)  # type: ignore[method-assign]
     rig.advance = _timed(rig.advance, plant)  # type: ignore[method-assign]
-    log = parts.run()
+    with trial_threads(1):
+        log = parts.run()
     stages["plant"] = list(np.add(plant[0::2], plant[1::2]))  # apply, then advance, per tick
     medians = {f"{k}_ms": ms(np.array(v), 50) for k, v in stages.items()}
     return {
