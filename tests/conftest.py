@@ -6,7 +6,9 @@ import os
 
 import numpy as np
 import pytest
+import scipy.linalg  # noqa: F401  (SciPy's own BLAS, loaded here to be limited below)
 from hypothesis import settings
+from threadpoolctl import threadpool_limits
 
 from magrun.field.coils import CoilSystem
 from magrun.field.grid import ChannelGrid
@@ -14,6 +16,15 @@ from magrun.field.lut import LookupTableFieldModel
 from magrun.field.reference import ReferenceMaps
 from magrun.field.zernike import ZernikeFieldModel
 from magrun.robot import RobotParams, load_robot
+from magrun.runner import THREAD_ENV
+
+# One BLAS thread in each test process and in the commands the tests start: the tests already
+# run one process per core (pytest-xdist), and OpenBLAS's own threads spin on the other core
+# between small products, taking it from the other tests. Trials limit themselves the same
+# way (magrun.trial.trial_threads), and the run's pool starts its workers so (THREAD_ENV).
+for _name in THREAD_ENV:
+    os.environ.setdefault(_name, "1")
+threadpool_limits(limits=1, user_api="blas")
 
 # The fuzz tests draw the same examples on every run (a run passes or fails by the code
 # alone, on any machine); MAGRUN_FUZZ_EXPLORE=1 draws new ones (docs/development.md).
