@@ -78,10 +78,12 @@ def trial_threads(n: int) -> Iterator[None]:
     network (ONNX Runtime, and torch where a caller has loaded it; results then do not depend
     on the thread count) and the linear algebra (the BLAS that NumPy and SciPy loaded,
     through threadpoolctl). A trial's matrices are small: OpenBLAS's threads then mostly
-    spin waiting for work, and took more CPU than the whole loop in a Baseline 3 trial
-    (3.7 of 9.5 s), beside the loop on its other core, where a campaign's second worker or
-    a rig's recorder runs. Libraries loaded inside are limited by the next call. Tracking
-    needs no torch (:mod:`magrun.tracking.inference`); this never imports it."""
+    spin waiting for work (3.7 s of a 10 s Baseline 3 trial's 9.5 s of CPU, 0.5 s on one
+    thread), on the other cores, where a rig's recorder or other work runs. The run's pool
+    starts its workers with one thread already (:data:`magrun.runner.THREAD_ENV`); this
+    covers the trials run in-process (``--jobs 1``, the hardware rig, Ray's workers).
+    Libraries loaded inside are limited by the next call. Tracking needs no torch
+    (:mod:`magrun.tracking.inference`); this never imports it."""
     from threadpoolctl import threadpool_limits
 
     from magrun.tracking.inference import inference_threads
