@@ -214,7 +214,8 @@ def execute_trial(
 #: a trial's CPU seconds in the manifest (``cpu_s``): the trial's set-up (assembling it,
 #: opening the recording), the loop's stages (:data:`magrun.loop.STAGES`), its finish
 #: (closing the recording, the health figures), the process's other threads meanwhile (the
-#: recorder's writer, Rerun's and ONNX Runtime's threads), and the total
+#: recorder's writer thread, Rerun's and ONNX Runtime's threads; a writer process, as on the
+#: hardware rig, is not counted), and the total: the process's CPU time over the trial
 CPU_PARTS = ("setup", *STAGES, "finish", "other_threads", "total")
 
 
