@@ -265,7 +265,9 @@ class KalmanPoseFilter(Estimator):
         # process's start-up), which a process running no Kalman filter never needs; with the
         # filter, scipy.stats is then in memory before any tick (:meth:`truncate` uses it)
         from filterpy.kalman import KalmanFilter
-        from scipy.stats import truncnorm  # noqa: F401
+        from scipy.stats import truncnorm
+
+        self._truncnorm = truncnorm
 
         self.kf = KalmanFilter(dim_x=n, dim_z=3)
         self.reset(np.zeros(3))
@@ -420,9 +422,7 @@ class KalmanPoseFilter(Estimator):
         sigma = math.sqrt(var)
         # the truncated normal of the offset from the current mean, in units of sigma
         a, b = lo / sigma, hi / sigma
-        from scipy.stats import truncnorm  # in memory since __init__: no tick waits for it
-
-        mean, variance = truncnorm.stats(a, b, moments="mv")
+        mean, variance = self._truncnorm.stats(a, b, moments="mv")
         shift, ratio = float(mean) * sigma, float(variance)
         if not (math.isfinite(shift) and math.isfinite(ratio)):
             return self.pose
