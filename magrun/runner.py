@@ -634,7 +634,10 @@ def run_protocol(
         raise RunError(NO_DRIVER)
     # a bad system folder, or damaged maps or models in it, fail here (RunError), before any run
     # and so does a trajectory the coils cannot move the robot along (unless not asked)
-    coils = check_system(protocol, feasibility=check_reach)
+    # and, with camera feedback in simulation, a robot the camera's tracker cannot find
+    coils = check_system(
+        protocol, feasibility=check_reach, tracking=rig == "sim" and protocol.feedback.camera
+    )
     if isinstance(rig, HardwareSpec):
         # an unknown scheme, a rig out of reach or one whose channels or limits are not the
         # system's fails here (RunError), before a folder is made or a current sent

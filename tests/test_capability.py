@@ -45,6 +45,7 @@ from magrun.trial import (
     PAPER_SPEED_FACTOR,
     RunError,
     check_system,
+    check_tracking,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -160,8 +161,33 @@ def test_run_refuses_a_trajectory_the_coils_cannot_follow(three: Path, tmp_path:
 
 
 def test_every_shipped_protocol_is_within_its_coils_reach() -> None:
+    """... and where it tracks camera frames, its robot is one the tracker finds."""
     for path in sorted((ROOT / "protocols").glob("*.yaml")):
-        check_system(load_protocol(path))
+        protocol = load_protocol(path)
+        check_system(protocol, tracking=protocol.feedback.camera)
+
+
+def test_run_refuses_camera_feedback_for_a_robot_the_tracker_cannot_find(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The probe itself (a cache of the test's own): the paper's two robots are found in
+    their rendered frames; micro_magnet, a quarter of the magnet robot's length, in none, and
+    its run is refused before anything is written, the remedy named. On the machine's cache
+    a second check gives the same verdict without rendering again."""
+    with monkeypatch.context() as m:
+        m.setenv("MAGRUN_CACHE_DIR", str(tmp_path / "cache"))
+        for name in ("magnet", "drug_delivery"):
+            check_tracking(load_robot(name))
+        for _ in range(2):
+            with pytest.raises(RunError, match=r"'micro_magnet' \(4 mm × 1 mm.* in 100% of 40"):
+                check_tracking(load_robot("micro_magnet"))
+        assert len(list((tmp_path / "cache" / "answers").glob("tracking-*.json"))) == 3
+    args = ["run", str(ROOT / "protocols" / "octomag.yaml"), "--out", str(tmp_path / "out")]
+    result = CliRunner().invoke(cli, [*args, "--quick", "--set", "feedback.camera=true"])
+    assert result.exit_code == 2, result.output
+    assert "Set `feedback: {camera: false}`" in result.output
+    assert "Traceback" not in result.output
+    assert not (tmp_path / "out").exists()  # nothing was run or written
 
 
 def test_field_check_prints_a_summary_and_draws_the_map(three: Path, tmp_path: Path) -> None:
