@@ -411,11 +411,12 @@ def check_tracking(robot: RobotParams) -> None:
     noise, half of them in a channel) and tracked as in a trial; more than
     :data:`MAX_TRACKING_FAILURES` of them lost or over 1 mm off is refused. The shipped
     tracker learnt the paper's two robots at the camera's 2.5 px/mm; it finds robots of
-    their looks within about a quarter of their size, not a robot a quarter of the magnet
-    robot's length (docs/tracking.md). Its trials would be stopped by the safety layer for
-    "tracking lost": micro_magnet's (lost in every frame) at 1.02 s, a magnet robot 1.5
-    times as large (57 % lost) at 2.6 s. The share is kept in the machine's cache
-    (:mod:`magrun.answers`; the key covers the robot and the shipped weights)."""
+    their looks from their own size to a quarter larger, loses 12–45 % of the frames at
+    three quarters of it and all at a quarter (docs/tracking.md). Its trials would be
+    stopped by the safety layer for "tracking lost": micro_magnet's (lost in every frame)
+    at 1.02 s, a magnet robot 1.5 times as large (57 % lost) at 2.6 s. The share is kept in
+    the machine's cache (:mod:`magrun.answers`; the key covers the robot and the shipped
+    weights)."""
     from magrun.answers import remembered
 
     def probe() -> tuple[float]:

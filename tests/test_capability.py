@@ -167,19 +167,28 @@ def test_every_shipped_protocol_is_within_its_coils_reach() -> None:
         check_system(protocol, tracking=protocol.feedback.camera)
 
 
+def _must_not_run(*args: Any, **kwargs: Any) -> Any:
+    raise AssertionError("the probe ran again")
+
+
 def test_run_refuses_camera_feedback_for_a_robot_the_tracker_cannot_find(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The probe itself (a cache of the test's own): the paper's two robots are found in
     their rendered frames; micro_magnet, a quarter of the magnet robot's length, in none, and
-    its run is refused before anything is written, the remedy named. On the machine's cache
-    a second check gives the same verdict without rendering again."""
+    its run is refused before anything is written, the remedy named. From the machine's
+    cache a second check gives the same verdicts without tracking a frame."""
+    import magrun.tracking.evaluate
+
+    refused = r"'micro_magnet' \(4 mm × 1 mm.* in 100% of 40"
     with monkeypatch.context() as m:
         m.setenv("MAGRUN_CACHE_DIR", str(tmp_path / "cache"))
-        for name in ("magnet", "drug_delivery"):
-            check_tracking(load_robot(name))
-        for _ in range(2):
-            with pytest.raises(RunError, match=r"'micro_magnet' \(4 mm × 1 mm.* in 100% of 40"):
+        for again in (False, True):
+            if again:  # the answers kept: nothing is rendered or tracked
+                m.setattr(magrun.tracking.evaluate, "evaluate", _must_not_run)
+            for name in ("magnet", "drug_delivery"):
+                check_tracking(load_robot(name))
+            with pytest.raises(RunError, match=refused):
                 check_tracking(load_robot("micro_magnet"))
         assert len(list((tmp_path / "cache" / "answers").glob("tracking-*.json"))) == 3
     args = ["run", str(ROOT / "protocols" / "octomag.yaml"), "--out", str(tmp_path / "out")]
