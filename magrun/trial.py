@@ -424,8 +424,8 @@ def check_tracking(robot: RobotParams) -> None:
         from magrun.tracking.tracker import default_weights_path, load_net
         from magrun.tracking.weights import read_weights
 
-        net = load_net(read_weights(default_weights_path()))
-        with trial_threads(1):
+        with trial_threads(1):  # the network's session is made with one thread, as a trial's
+            net = load_net(read_weights(default_weights_path()))
             result = evaluate(net, [robot], frames=TRACKING_PROBE_FRAMES, search_frames=0)
         return (float(result["tracking"]["failure_rate"]),)
 

@@ -69,18 +69,17 @@ def bench_tick(
             "duration_s": (ticks - 1) / controller.rate_hz,  # ticks at 0, dt, …
         }
     )
+    stages: dict[str, list[float]] = {name: [] for name in STAGES}
+    plant: list[float] = []
     with trial_threads(1):  # the tracker's network and the BLAS, as in a run's trial
         parts = assemble(single_trial(protocol, method, first.seed))
-    stages: dict[str, list[float]] = {name: [] for name in STAGES}
-    rig, controller_ = parts.rig, parts.controller
-    rig.observe = _timed(rig.observe, stages["render"])  # type: ignore[method-assign]
-    parts.tracker = _TimedTracker(parts.tracker, stages["track"])
-    controller_.step = _timed(controller_.step, stages["control"])  # type: ignore[method-assign]
-    controller_.prepare = _timed(controller_.prepare, stages["prepare"])  # type: ignore[method-assign]
-    plant: list[float] = []
-    rig.apply = _timed(rig.apply, plant)  # type: ignore[method-assign]
-    rig.advance = _timed(rig.advance, plant)  # type: ignore[method-assign]
-    with trial_threads(1):
+        rig, controller_ = parts.rig, parts.controller
+        rig.observe = _timed(rig.observe, stages["render"])  # type: ignore[method-assign]
+        parts.tracker = _TimedTracker(parts.tracker, stages["track"])
+        controller_.step = _timed(controller_.step, stages["control"])  # type: ignore[method-assign]
+        controller_.prepare = _timed(controller_.prepare, stages["prepare"])  # type: ignore[method-assign]
+        rig.apply = _timed(rig.apply, plant)  # type: ignore[method-assign]
+        rig.advance = _timed(rig.advance, plant)  # type: ignore[method-assign]
         log = parts.run()
     stages["plant"] = list(np.add(plant[0::2], plant[1::2]))  # apply, then advance, per tick
     medians = {f"{k}_ms": ms(np.array(v), 50) for k, v in stages.items()}
