@@ -461,6 +461,68 @@ def test_shipped_weights_track_a_rendered_frame(shipped, robots, name: str) -> N
             assert result.confidence > 0.5
 
 
+def _counting(tracker: Tracker) -> list[int]:
+    """The input sides the tracker's network runs on from now, in order."""
+    sides: list[int] = []
+    net = tracker._net
+
+    def run(x: np.ndarray) -> np.ndarray:
+        sides.append(x.shape[-1])
+        return net(x)
+
+    tracker._net = run
+    return sides
+
+
+@pytest.mark.parametrize(
+    ("moved_mm", "sides"),
+    [
+        (1.0, [64]),  # in the window at the previous pose
+        (12.0, [64, 128, 64]),  # beyond it, in the wider window, refined in a window
+        (40.0, [64, 128, 256, 64]),  # beyond both: the whole frame
+    ],
+)
+def test_a_robot_that_left_the_window_is_found_in_the_wider_one_first(
+    robots, moved_mm: float, sides: list[int]
+) -> None:
+    """The magnet robot (64 px window, 128 px wider window, 256 px frame) moved ``moved_mm``
+    from the previous pose: found within 0.3 mm and 2° after running the network on the
+    sides given, so the whole frame is searched only where the wider window misses too."""
+    robot = robots["magnet"]
+    tracker = Tracker.default(Camera(), robot)
+    assert (tracker.window_px, tracker.search_px) == (64, 128)
+    pose = np.array([0.02, -0.015, 0.7])
+    frame = Renderer(Camera(), robot, Walls.box(0.05), seed=3).render(pose)
+    prior = pose + np.array([-moved_mm * 1e-3, 0.0, 0.3])
+    ran = _counting(tracker)
+    result = tracker.track(frame, prior)
+    assert ran == sides
+    assert result.searched == (moved_mm > 5)
+    assert result.pose is not None
+    assert np.hypot(*(result.pose[:2] - pose[:2])) < 0.3e-3
+    assert abs(wrap_angle(result.pose[2] - pose[2])) < math.radians(2)
+
+
+def test_warm_up_runs_each_input_size_once_and_remembers_nothing(robots) -> None:
+    """The window, the wider window and the whole frame, once each; no pose kept. A wider
+    window as large as the frame is the frame (not run twice); bad sides are refused."""
+    robot = robots["magnet"]
+    tracker = Tracker.default(Camera(), robot)
+    ran = _counting(tracker)
+    tracker.warm_up()
+    assert ran == [64, 128, 256]
+    assert tracker.last_pose is None
+    whole = Tracker.default(Camera(), robot)
+    whole.search_px = 256
+    ran = _counting(whole)
+    whole.warm_up()
+    assert ran == [64, 256]
+    net = read_weights(default_weights_path())
+    for side in (100, 32):
+        with pytest.raises(ValueError, match="search_px"):
+            Tracker(graph_net(net), Camera(), robot, search_px=side)
+
+
 def test_frames_at_another_scale_are_tracked(shipped, robots) -> None:
     """A 4.1 px/mm, 400 × 330 px camera (a lab's): resized to the model's scale internally,
     pose within 0.3 mm and 2°, keypoints reported in the frame's own pixels (within 1 px)."""

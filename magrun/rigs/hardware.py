@@ -79,6 +79,9 @@ class HardwareRig(Rig):
         self._applied = np.zeros(len(getattr(self, "channel_names", ())))
 
     def connect(self) -> None:
+        # the network's first runs now, not in the loop's first ticks; before the driver's
+        # watchdog starts counting
+        self.tracker.warm_up()
         self.driver.open(self.watchdog_s)
         try:
             self.channel_names, self.max_current, self.max_slew_rate = agreed_limits(

@@ -264,7 +264,9 @@ class SimRig(Rig):
             return None
         from magrun.tracking.tracker import Tracker
 
-        tracker: PoseTracker = Tracker.default(self.camera, self.nominal_robot)
+        unet = Tracker.default(self.camera, self.nominal_robot)
+        unet.warm_up()  # the network's first runs here, not in the loop's first ticks
+        tracker: PoseTracker = unet
         if self.tracking_errors is not None:
             tracker = ImperfectTracker(tracker, self.tracking_errors)  # a bench's pipeline
         return tracker

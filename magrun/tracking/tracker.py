@@ -8,13 +8,16 @@
 
 The tracker runs the UNet on a ``window_px``-square window (by default the robot's length
 plus 12 px each side: 64 px, 25.6 mm, for the magnet robot; the model trained on 96 px crops)
-centred on the previous pose: the robot moves at most ~1 mm between frames, and the window
-keeps the per-frame cost low whatever the frame size. With no
-previous pose (first frame, or the robot was lost) it searches the whole frame with the
-same, fully convolutional network, then refines in a window. Each heat map may offer a few
-peaks; :func:`select_keypoints` takes the strongest three that form the robot. A result is
-rejected (``pose`` is ``None``) when a point's peak is below ``min_confidence``, or the
-tail-to-head span is not within 25 % of the robot's length.
+centred on the previous pose: at a camera's rate the robot moves at most ~1 mm between
+frames, and the window keeps the per-frame cost low whatever the frame size. Where the robot
+is not in that window (it moved further between two low-rate frames) the tracker looks in a
+wider window around the same pose (``search_px``, twice the side by default: a quarter of
+the whole frame's cost on a 256 px frame), and only then in the whole frame, with the same,
+fully convolutional network; with no previous pose (the first frame, or the robot was lost)
+it searches the whole frame. A robot found that way is refined in a window around it. Each
+heat map may offer a few peaks; :func:`select_keypoints` takes the strongest three that form
+the robot. A result is rejected (``pose`` is ``None``) when a point's peak is below
+``min_confidence``, or the tail-to-head span is not within 25 % of the robot's length.
 
     >>> tracker = Tracker.default(Camera(), load_robot("magnet"))         # doctest: +SKIP
     >>> tracker(frame).pose                                               # doctest: +SKIP
@@ -99,7 +102,8 @@ class TrackResult:
     keypoints : ndarray, shape (3, 2)
         Tail, centre and head in frame pixels ``(u, v)``.
     searched : bool
-        Whether this frame needed a whole-frame search.
+        Whether the robot was looked for beyond the window at the previous pose (in the
+        wider window or the whole frame).
     """
 
     pose: FloatArray | None
@@ -165,6 +169,10 @@ class Tracker:
         (under 1 px). Default: the robot's length plus the margins, rounded up to the stride
         (64 px for the 16 mm magnet robot, 48 px for the 7.4 mm capsule at 2.5 px/mm). The
         UNet's cost grows with the window's area.
+    search_px : int, optional
+        Side of the wider window tried around the previous pose when the robot is not in the
+        first (a multiple of the stride); the whole frame is searched only where it fails too.
+        Default: twice ``window_px``. Where it covers the whole frame, the frame is searched.
     model_px_per_mm : float
         The scale the model was trained at. Frames at another scale (a real camera) are
         resized to it before tracking; results are reported in the frame's own pixels.
@@ -182,6 +190,7 @@ class Tracker:
         window_px: int | None = None,
         model_px_per_mm: float = DEFAULT_CAMERA.px_per_mm,
         backend: Backend = "onnx",
+        search_px: int | None = None,
     ) -> None:
         if not isinstance(model, UNetNet):  # a torch model (training, evaluation)
             from magrun.tracking.export import model_net
@@ -212,6 +221,10 @@ class Tracker:
         if window_px % self.stride or window_px < 4 * self.stride:
             raise ValueError(f"window_px must be a multiple of {self.stride}, ≥ {4 * self.stride}")
         self.window_px = window_px
+        search_px = 2 * window_px if search_px is None else search_px
+        if search_px % self.stride or search_px < window_px:
+            raise ValueError(f"search_px must be a multiple of {self.stride}, ≥ window_px")
+        self.search_px = search_px
         self.last_pose: FloatArray | None = None
 
     @classmethod
@@ -248,7 +261,11 @@ class Tracker:
         if guess is not None:
             result = self._in_window(frame, guess, searched=False)
         if result is None or result.pose is None:
-            found = self._search(frame)
+            found = None
+            if guess is not None and self._wider_than_window(frame):
+                found = self._in_window(frame, guess, searched=True, side=self.search_px)
+            if found is None or found.pose is None:
+                found = self._search(frame)
             result = found
             if found.pose is not None:
                 refined = self._in_window(frame, found.pose, searched=True)
@@ -258,12 +275,33 @@ class Tracker:
             result = replace(result, keypoints=(result.keypoints + 0.5) / self._factor - 0.5)
         return result
 
+    def warm_up(self) -> None:
+        """Run the network once on each input size tracking uses (the window, the wider
+        window, the whole frame), so that the runtime's first-run work on a size (memory
+        plans, allocations: ~10 ms for a whole frame here) happens now, before a control
+        loop, and not in its first ticks. The heat maps are discarded."""
+        blank = np.zeros((self._size[1], self._size[0], 3), dtype=np.uint8)
+        pose = np.array([*self._work.center[:2], 0.0])
+        self._in_window(blank, pose, searched=False)
+        if self._wider_than_window(blank):
+            self._in_window(blank, pose, searched=True, side=self.search_px)
+        self._search(blank)
+
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
         return self._net(to_array(image))[0]
 
-    def _in_window(self, frame: U8, pose: FloatArray, searched: bool) -> TrackResult:
+    def _wider_than_window(self, frame: U8) -> bool:
+        """Whether the wider window is smaller than the whole frame (else: search it)."""
         h, w = frame.shape[:2]
-        size = min(self.window_px, h - h % self.stride, w - w % self.stride)
+        side = min(self.search_px, h - h % self.stride, w - w % self.stride)
+        return side > self.window_px and (side < h - h % self.stride or side < w - w % self.stride)
+
+    def _in_window(
+        self, frame: U8, pose: FloatArray, searched: bool, side: int | None = None
+    ) -> TrackResult:
+        h, w = frame.shape[:2]
+        side = self.window_px if side is None else side
+        size = min(side, h - h % self.stride, w - w % self.stride)
         u, v = self._work.to_pixel(pose[:2])
         u0 = int(np.clip(round(u - (size - 1) / 2), 0, w - size))
         v0 = int(np.clip(round(v - (size - 1) / 2), 0, h - size))
