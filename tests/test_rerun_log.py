@@ -121,6 +121,39 @@ def _bounds(layout: Any) -> list[float]:
     return [*bounds["x_range"], *bounds["y_range"]]
 
 
+def test_the_camera_view_is_framed_on_the_whole_frame(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The recorder's layout frames the camera view on the camera's whole frame, 0..width by
+    0..height px (the viewer's own framing follows the content and showed a quarter of a
+    frame), also where the .rrd is rebuilt from the MCAP; without a camera there is no such
+    view."""
+    import magrun.recordings.rerun_log as rerun_log
+
+    layouts: list[Any] = []
+    build = rerun_log.blueprint
+
+    def capture(*args: Any, **kwargs: Any) -> Any:
+        layouts.append(build(*args, **kwargs))
+        return layouts[-1]
+
+    monkeypatch.setattr(rerun_log, "blueprint", capture)
+    camera = Camera()
+    height, width = camera.shape
+    frame = np.zeros((height, width, 3), dtype=np.uint8)
+    rec = _record(tmp_path / "t", _setup(10, camera=camera), _ticks(10, frame))
+    rrd_from_mcap(rec.mcap_path, tmp_path / "converted.rrd")
+    _record(tmp_path / "none", _setup(10), _ticks(10, None))
+    assert len(layouts) == 3
+    for layout in layouts[:2]:
+        view = layout.root_container.contents[0].contents[0]
+        assert view.name == "camera (px)"
+        (bounds,) = view.properties["VisualBounds2D"].range.as_arrow_array().to_pylist()
+        assert [*bounds["x_range"], *bounds["y_range"]] == [0, width, 0, height]
+    names = [v.name for v in layouts[2].root_container.contents[0].contents]
+    assert names == ["workspace from above (m, y up)"]
+
+
 def test_a_phantom_fills_the_workspace_view_with_the_legend_under_it(tmp_path: Path) -> None:
     """With a phantom the view is framed on its walls' bounding square, wherever it lies in
     the workspace (here 20 x 5 mm about (0, 2.5) mm in a 100 mm square), with the legend

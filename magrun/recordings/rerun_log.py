@@ -153,8 +153,11 @@ def blueprint(
     with_replays: bool = False,
     channels: int = 0,
     legend_rows: int = LEGEND_ROWS,
+    camera_px: tuple[int, int] | None = None,
 ) -> Any:
-    """The ``.rrd``'s layout: camera, workspace from above (framed on ``frame``'s square
+    """The ``.rrd``'s layout: camera (framed on the whole ``camera_px`` = (width, height)
+    frame when given: the viewer's own framing follows what the view holds and can leave
+    part of the frame out), workspace from above (framed on ``frame``'s square
     when given, with room for ``legend_rows`` rows of legend under it), and one time-series
     view per unit; with replays, also the estimation error of the recorded and the replayed
     estimators. The currents' view is taller by ``channels`` (its legend, a line per coil,
@@ -164,7 +167,10 @@ def blueprint(
 
     views: list[Any] = []
     if with_camera:
-        views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)"))
+        whole = None
+        if camera_px is not None:
+            whole = rrb.VisualBounds2D(x_range=[0, camera_px[0]], y_range=[0, camera_px[1]])
+        views.append(rrb.Spatial2DView(origin="/camera", name="camera (px)", visual_bounds=whole))
     bounds = None
     if frame is not None:
         # the view's own y points down (each entity is mirrored into it): the legend under
@@ -241,8 +247,14 @@ class RerunLog:
         legend_at, legend_rows = (
             legend_layout(frame, [w for _, w in legend.values()]) if frame else (None, 0)
         )
+        camera_px = None if self.camera is None else (self.camera.shape[1], self.camera.shape[0])
         layout = blueprint(
-            self.camera is not None, frame, bool(replays), len(setup.channel_names), legend_rows
+            self.camera is not None,
+            frame,
+            bool(replays),
+            len(setup.channel_names),
+            legend_rows,
+            camera_px,
         )
         self._rec = rr.RecordingStream(
             "magrun", recording_id=setup.recording_id or None, send_properties=False
