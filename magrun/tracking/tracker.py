@@ -14,10 +14,11 @@ is not in that window (it moved further between two low-rate frames) the tracker
 wider window around the same pose (``search_px``, twice the side by default: a quarter of
 the whole frame's cost on a 256 px frame), and only then in the whole frame, with the same,
 fully convolutional network; with no previous pose (the first frame, or the robot was lost)
-it searches the whole frame. A robot found that way is refined in a window around it. Each
-heat map may offer a few peaks; :func:`select_keypoints` takes the strongest three that form
-the robot. A result is rejected (``pose`` is ``None``) when a point's peak is below
-``min_confidence``, or the tail-to-head span is not within 25 % of the robot's length.
+it searches the whole frame. A robot found that way is refined in a window around it, and
+so is one found at the first window's edge (it may reach outside). Each heat map may offer
+a few peaks; :func:`select_keypoints` takes the strongest three that form the robot. A
+result is rejected (``pose`` is ``None``) when a point's peak is below ``min_confidence``,
+or the tail-to-head span is not within 25 % of the robot's length.
 
     >>> tracker = Tracker.default(Camera(), load_robot("magnet"))         # doctest: +SKIP
     >>> tracker(frame).pose                                               # doctest: +SKIP
@@ -145,6 +146,8 @@ def select_keypoints(
 
 #: border kept around the robot in the tracking window, px at the model's scale
 WINDOW_MARGIN_PX = 12
+#: a keypoint this close to a window's edge (px) means the robot may reach outside it
+EDGE_PX = WINDOW_MARGIN_PX // 2
 
 
 class Tracker:
@@ -260,6 +263,11 @@ class Tracker:
         result = None
         if guess is not None:
             result = self._in_window(frame, guess, searched=False)
+            if result.pose is not None and self._near_edge(frame, result, guess):
+                # the robot at the window's edge, partly outside it: track it again in a
+                # window centred on it (a partial robot's pose is off by up to ~1 mm)
+                again = self._in_window(frame, result.pose, searched=False)
+                result = again if again.pose is not None else result
         if result is None or result.pose is None:
             found = None
             if guess is not None and self._wider_than_window(frame):
@@ -296,15 +304,35 @@ class Tracker:
         side = min(self.search_px, h - h % self.stride, w - w % self.stride)
         return side > self.window_px and (side < h - h % self.stride or side < w - w % self.stride)
 
-    def _in_window(
-        self, frame: U8, pose: FloatArray, searched: bool, side: int | None = None
-    ) -> TrackResult:
+    def _window(self, frame: U8, pose: FloatArray, side: int | None) -> tuple[int, int, int]:
+        """The square window of ``side`` (default ``window_px``) centred on ``pose`` as far as
+        the frame allows: its corner ``(u0, v0)`` and side, px."""
         h, w = frame.shape[:2]
         side = self.window_px if side is None else side
         size = min(side, h - h % self.stride, w - w % self.stride)
         u, v = self._work.to_pixel(pose[:2])
         u0 = int(np.clip(round(u - (size - 1) / 2), 0, w - size))
         v0 = int(np.clip(round(v - (size - 1) / 2), 0, h - size))
+        return u0, v0, size
+
+    def _near_edge(self, frame: U8, result: TrackResult, pose: FloatArray) -> bool:
+        """Whether a keypoint of ``result``, tracked in the window at ``pose``, lies within
+        :data:`EDGE_PX` of one of the window's edges that is not the frame's."""
+        h, w = frame.shape[:2]
+        u0, v0, size = self._window(frame, pose, None)
+        u, v = result.keypoints[:, 0], result.keypoints[:, 1]
+        m = EDGE_PX
+        return bool(
+            (u0 > 0 and (u < u0 + m).any())
+            or (u0 + size < w and (u > u0 + size - 1 - m).any())
+            or (v0 > 0 and (v < v0 + m).any())
+            or (v0 + size < h and (v > v0 + size - 1 - m).any())
+        )
+
+    def _in_window(
+        self, frame: U8, pose: FloatArray, searched: bool, side: int | None = None
+    ) -> TrackResult:
+        u0, v0, size = self._window(frame, pose, side)
         window = frame[v0 : v0 + size, u0 : u0 + size]
         return self._result(self._heatmaps(window), np.array([u0, v0]), searched)
 
