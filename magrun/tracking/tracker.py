@@ -262,8 +262,9 @@ class Tracker:
         guess = self.last_pose if prior is None else np.asarray(prior, dtype=np.float64)
         result = None
         if guess is not None:
-            result = self._in_window(frame, guess, searched=False)
-            if result.pose is not None and self._near_edge(frame, result, guess):
+            window = self._window(frame, guess, None)
+            result = self._tracked_in(frame, window, searched=False)
+            if result.pose is not None and self._near_edge(frame, result, window):
                 # the robot at the window's edge, partly outside it: track it again in a
                 # window centred on it (a partial robot's pose is off by up to ~1 mm)
                 again = self._in_window(frame, result.pose, searched=False)
@@ -298,28 +299,33 @@ class Tracker:
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
         return self._net(to_array(image))[0]
 
+    def _side(self, frame: U8, side: int) -> int:
+        """A square window's side in ``frame``: ``side`` where the frame holds it, else the
+        frame's shorter side rounded down to the stride."""
+        h, w = frame.shape[:2]
+        return min(side, h - h % self.stride, w - w % self.stride)
+
     def _wider_than_window(self, frame: U8) -> bool:
         """Whether the wider window is smaller than the whole frame (else: search it)."""
         h, w = frame.shape[:2]
-        side = min(self.search_px, h - h % self.stride, w - w % self.stride)
+        side = self._side(frame, self.search_px)
         return side > self.window_px and (side < h - h % self.stride or side < w - w % self.stride)
 
     def _window(self, frame: U8, pose: FloatArray, side: int | None) -> tuple[int, int, int]:
         """The square window of ``side`` (default ``window_px``) centred on ``pose`` as far as
         the frame allows: its corner ``(u0, v0)`` and side, px."""
         h, w = frame.shape[:2]
-        side = self.window_px if side is None else side
-        size = min(side, h - h % self.stride, w - w % self.stride)
+        size = self._side(frame, self.window_px if side is None else side)
         u, v = self._work.to_pixel(pose[:2])
         u0 = int(np.clip(round(u - (size - 1) / 2), 0, w - size))
         v0 = int(np.clip(round(v - (size - 1) / 2), 0, h - size))
         return u0, v0, size
 
-    def _near_edge(self, frame: U8, result: TrackResult, pose: FloatArray) -> bool:
-        """Whether a keypoint of ``result``, tracked in the window at ``pose``, lies within
-        :data:`EDGE_PX` of one of the window's edges that is not the frame's."""
+    def _near_edge(self, frame: U8, result: TrackResult, window: tuple[int, int, int]) -> bool:
+        """Whether a keypoint of ``result``, tracked in ``window`` (:meth:`_window`), lies
+        within :data:`EDGE_PX` of one of the window's edges that is not the frame's."""
         h, w = frame.shape[:2]
-        u0, v0, size = self._window(frame, pose, None)
+        u0, v0, size = window
         u, v = result.keypoints[:, 0], result.keypoints[:, 1]
         m = EDGE_PX
         return bool(
@@ -332,9 +338,12 @@ class Tracker:
     def _in_window(
         self, frame: U8, pose: FloatArray, searched: bool, side: int | None = None
     ) -> TrackResult:
-        u0, v0, size = self._window(frame, pose, side)
-        window = frame[v0 : v0 + size, u0 : u0 + size]
-        return self._result(self._heatmaps(window), np.array([u0, v0]), searched)
+        return self._tracked_in(frame, self._window(frame, pose, side), searched)
+
+    def _tracked_in(self, frame: U8, window: tuple[int, int, int], searched: bool) -> TrackResult:
+        u0, v0, size = window
+        crop = frame[v0 : v0 + size, u0 : u0 + size]
+        return self._result(self._heatmaps(crop), np.array([u0, v0]), searched)
 
     def _search(self, frame: U8) -> TrackResult:
         h, w = frame.shape[:2]
