@@ -149,10 +149,28 @@ def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
 
 def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
     """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
-    and critical boundary, or the workspace square."""
-    if scene.boundaries:
-        return FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
-    return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
+    and critical boundary, or the workspace square. Building one tabulates where the body
+    fits (a third of a second for the spine), so the last few are kept in this process: a
+    campaign's trials, and a test session's, share their geometry."""
+    boundaries = tuple(
+        (name, np.asarray(line, dtype=np.float64).tobytes(), np.shape(line))
+        for name, line in scene.boundaries.items()
+    )
+    key = (boundaries, scene.critical, scene.half_width, robot.length, robot.diameter)
+    if (space := _FREE_SPACES.get(key)) is None:
+        if len(_FREE_SPACES) >= 8:
+            _FREE_SPACES.clear()
+        if scene.boundaries:
+            space = FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
+        else:
+            space = FreeSpace.square(scene.half_width, robot.length, robot.diameter)
+        _FREE_SPACES[key] = space
+    return space
+
+
+#: free_space_of's spaces by their geometry (a FreeSpace is immutable but for its own
+#: caches of the same geometry)
+_FREE_SPACES: dict[tuple[Any, ...], FreeSpace] = {}
 
 
 # --------------------------------------------------------------------------------------------

@@ -618,3 +618,27 @@ def test_the_spine_prepares_every_tick_in_the_loop() -> None:
     between = used[True][~framed]
     assert between.sum() > 0.8 * len(between), (between.sum(), len(between))
     assert logs[True].rms_position_mm == pytest.approx(logs[False].rms_position_mm, rel=0.05)
+
+
+def test_a_process_builds_each_free_space_once() -> None:
+    """free_space_of keeps what it built: the same phantom and robot give the same FreeSpace
+    (a campaign's trials share it), another robot or another geometry another one, equal to
+    one built afresh."""
+    spine_protocol = load_protocol(PROTOCOLS / "spine.yaml")
+    scene = build_scene(spine_protocol)
+    robot = spine_protocol.robot_params()
+    first = free_space_of(scene, robot)
+    assert free_space_of(build_scene(spine_protocol), robot) is first
+    other_robot = replace(robot, length=robot.length * 0.9)
+    smaller = free_space_of(scene, other_robot)
+    assert smaller is not first
+    assert smaller.length == other_robot.length
+    fresh = FreeSpace(scene.boundaries, scene.critical, other_robot.length, robot.diameter)
+    poses = np.array([[0.0, 0.0, 0.0], [0.004, -0.002, 0.5], [0.0074, 0.0, 1.2]])
+    for pose in poses:
+        assert smaller.clearance(pose) == fresh.clearance(pose)
+    assert smaller.inside(poses[:, :2]).tolist() == fresh.inside(poses[:, :2]).tolist()
+    moved = replace(scene, boundaries={k: v + 1e-3 for k, v in scene.boundaries.items()})
+    assert free_space_of(moved, robot) is not first
+    square = build_scene(load_protocol(PROTOCOLS / "rate.yaml"))
+    assert free_space_of(square, robot).critical is None
