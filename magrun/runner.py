@@ -470,8 +470,10 @@ def _run_on_ray_node(trial: Trial, rig: RigSpec, view: str = "") -> dict[str, An
     the driver's output folder."""
     import tempfile
 
+    import cv2
     import ray
 
+    cv2.setNumThreads(1)  # as the run's pool starts its workers (_worker_init)
     with tempfile.TemporaryDirectory(prefix="magrun-ray-") as tmp:
         entry = _run_in_worker(trial, tmp, rig, None, view)
         files = {
@@ -563,8 +565,10 @@ def ray_executor(
                 )  # fmt: skip
                 raise RunError(f"could not connect to {where}: {exc}{hint}") from exc
         try:
-            one_thread = {k: os.environ.get(k, "1") for k in THREAD_ENV}
-            task = ray.remote(num_cpus=1, runtime_env={"env_vars": one_thread})(_run_on_ray_node)
+            # no runtime_env: Ray runs a task that has one in worker processes of its own,
+            # started for it, beside the workers each node keeps warm. The trial's threads
+            # are limited in the task (_run_on_ray_node, trial_threads) instead
+            task = ray.remote(num_cpus=1)(_run_on_ray_node)
             refs = {task.remote(t, rig, view): t for t in trials}
             pending = list(refs)
             while pending:
