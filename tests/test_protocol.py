@@ -276,14 +276,13 @@ def test_the_corrective_iteration_settings_reach_the_nmpc(
     method's NMPC as the protocol declares them (the phantom protocols: 6 half steps) or as
     the defaults leave them (2 full steps, the open protocols); --set overrides them."""
     from magrun.control.nmpc import NMPC
-    from magrun.trial import assemble
+    from magrun.trial import build_controller
 
     for overrides, want in (([], (iterations, step)),
                             (["controller.corrective_iterations=3",
                               "controller.corrective_step=0.25"], (3, 0.25))):  # fmt: skip
         protocol = load_protocol(ROOT / "protocols" / protocol_file, overrides)
-        parts = assemble(protocol.expand(quick=True)[0])
-        planner = parts.controller.planner
+        planner = build_controller(protocol.expand(quick=True)[0]).controller.planner
         assert isinstance(planner, NMPC)
         assert (planner.config.corrective_iterations, planner.config.corrective_step) == want
 
