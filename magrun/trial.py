@@ -147,6 +147,11 @@ def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
     return Scene(reference, None, {}, None, half_width)
 
 
+#: free_space_of's spaces by their geometry (a FreeSpace is immutable but for its own
+#: caches of the same geometry)
+_FREE_SPACES: dict[tuple[Any, ...], FreeSpace] = {}
+
+
 def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
     """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
     and critical boundary, or the workspace square. Building one tabulates where the body
@@ -166,11 +171,6 @@ def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
             space = FreeSpace.square(scene.half_width, robot.length, robot.diameter)
         _FREE_SPACES[key] = space
     return space
-
-
-#: free_space_of's spaces by their geometry (a FreeSpace is immutable but for its own
-#: caches of the same geometry)
-_FREE_SPACES: dict[tuple[Any, ...], FreeSpace] = {}
 
 
 # --------------------------------------------------------------------------------------------
