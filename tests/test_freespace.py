@@ -579,75 +579,12 @@ def test_a_prepared_phantom_tick_embeds_the_measured_state_to_first_order(
     assert np.linalg.norm(embedded - relinearised) < 0.03 * np.linalg.norm(relinearised)
 
 
-def test_a_start_in_the_margin_keeps_its_prepared_lead_out_within_one_stage_of_recovery(
-    zernike_model, spine: FreeSpace
-) -> None:
-    """Prepared at a predicted start whose body is 0.3 mm inside the corridor's margin, a
-    tick measured 0.05 mm deeper (less than one stage's recovery, 2 mm/s x 39 ms) uses the
-    preparation, its lead-out the prepared one: the stages 1 … N the solver gets are those of
-    the tick at the predicted start, and its currents answer the move as the unprepared tick
-    does, within 5 % (0.9 % seen). Measured 0.2 mm deeper (a frame's jump), the tick iterates in
-    full with the measured start's lead-out, as the unprepared tick does (1e-12 A)."""
-    cov = np.diag([0.8e-3, 0.8e-3, 0.05]) ** 2
-
-    def warm() -> tuple[NMPC, np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
-        nmpc, x_p, ref, currents = _warm_in_the_spine(zernike_model, spine, 13.4e-3)
-        seen: list[np.ndarray] = []
-        solve = nmpc.backend.solve
-
-        def recorded(x0, u_prev, par, start=None):  # type: ignore[no-untyped-def]
-            seen.append(np.array(par))
-            return solve(x0, u_prev, par, start)
-
-        nmpc.backend.solve = recorded  # type: ignore[method-assign]
-        nmpc.observe_uncertainty(cov)
-        return nmpc, x_p, ref, currents, seen
-
-    probe, x_p, ref, _, _ = warm()
-    planes = probe.corridor(x_p, ref)
-    n, c = planes[0, 0, :2], planes[0, 0, 2] * 1e-3
-    axis = spine.half_axis * np.array([math.cos(x_p[2]), math.sin(x_p[2])])
-    nearer = min(n @ (x_p[:2] + axis), n @ (x_p[:2] - axis))
-    x_in = x_p.copy()
-    x_in[:2] += n * (c - 0.3e-3 - nearer)  # the body 0.3 mm inside the margin
-    stage = probe.config.dt * probe.config.corridor_recovery
-    assert 0.05e-3 < stage < 0.2e-3
-    answers = {}
-    for deeper, embedded in ((0.0, 1), (0.05e-3, 1), (0.2e-3, 0)):
-        x_m = x_in.copy()
-        x_m[:2] -= n * deeper
-        plain, _, ref, currents, plain_seen = warm()
-        at_prediction, _, _, _, predicted_seen = warm()
-        split, _, _, _, split_seen = warm()
-        a = plain.plan(x_m, ref, currents)
-        at_prediction.plan(x_in, ref, currents)
-        split.expect_uncertainty(cov)
-        split.prepare(x_in, ref, currents)
-        b = split.plan(x_m, ref, currents)
-        assert b.status.prepare_time > 0
-        assert b.status.success
-        assert split.backend.embedded == embedded  # type: ignore[attr-defined]
-        used = split_seen[-1][:, 1:]
-        if embedded:
-            np.testing.assert_array_equal(used, predicted_seen[-1][:, 1:])
-            answers[deeper] = (a.currents, b.currents)
-        else:
-            np.testing.assert_array_equal(used, plain_seen[-1][:, 1:])
-            np.testing.assert_allclose(b.currents, a.currents, rtol=0, atol=1e-12)
-    (a0, b0), (a1, b1) = answers[0.0], answers[0.05e-3]
-    np.testing.assert_allclose(b0, a0, rtol=0, atol=1e-12)  # at the prediction: the same tick
-    unprepared, prepared = a1 - a0, b1 - b0
-    assert np.max(np.abs(unprepared)) > 1e-4  # the move is felt (A)
-    assert np.linalg.norm(prepared - unprepared) < 0.05 * np.linalg.norm(unprepared)
-
-
 def test_the_spine_prepares_every_tick_in_the_loop() -> None:
     """The spine protocol (3 Hz frames, Kalman filter, corridor), its first 4 s: every tick
     after the first is prepared (the corridor's margins come from the covariance before the
-    tick's frame, known a tick ahead), and the feedback phase uses the preparation in the
-    ticks without a frame (90 of 90 seen; a start in the corridor's margin keeps its prepared
-    lead-out there). A frame that moves the start deeper into the margin than one stage's
-    recovery iterates in full (the lead-out follows the measured start): on the spine, whose
+    tick's frame, known a tick ahead), and the feedback phase uses the preparation in most
+    ticks without a frame (80 of 90 seen). A tick whose start the corridor leads out of its
+    margin iterates in full (the lead-out follows the measured start): on the spine, whose
     path runs in the margin, the frames' ticks (13 of 13 seen). The loop tracks as one that
     never prepares (RMS within 5 %)."""
     from magrun.trial import assemble, single_trial
@@ -679,7 +616,7 @@ def test_the_spine_prepares_every_tick_in_the_loop() -> None:
     assert not used[False].any()
     framed = ~np.isnan(logs[True].measured[:, 0])
     between = used[True][~framed]
-    assert between.sum() > 0.95 * len(between), (between.sum(), len(between))
+    assert between.sum() > 0.8 * len(between), (between.sum(), len(between))
     assert logs[True].rms_position_mm == pytest.approx(logs[False].rms_position_mm, rel=0.05)
 
 

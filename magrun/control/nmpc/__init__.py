@@ -101,12 +101,7 @@ spine). The plan is then not asked to leave within one stage, which only a large
 force could do, bought with the heading: stage k's half-plane is moved back by what is left
 of the start's intrusion after k stages at ``corridor_recovery`` (m/s), so the constraint
 passes through the start's nearer end at stage 0 and is whole again once the intrusion is
-recovered. A prepared tick (the real-time iteration's preparation, at the predicted start)
-keeps the predicted start's lead-out where the measured start's intrusion is within one
-stage's recovery of it (``corridor_recovery`` × ``dt``, 0.08 mm at 2 mm/s and 25.5 Hz): the
-plan then leaves at most twice as fast, and the estimate's drift between frames, which
-differs from the planner's prediction by hundredths of a millimetre, does not undo the
-preparation. A frame that moves the start further iterates in full from its own lead-out.
+recovered.
 
 Soft constraints
 ----------------

@@ -74,8 +74,6 @@ class NMPC(Planner):
         self._expected_covariance: FloatArray | None = None
         #: the corridor's stages 1 … N as prepared: (reference, covariance, half-planes)
         self._ahead: tuple[FloatArray, FloatArray | None, FloatArray] | None = None
-        #: the prepared start's intrusion into the corridor's margin (m; module doc)
-        self._intrusion: float | None = None
         self._prepare_time = 0.0
 
     @property
@@ -101,7 +99,7 @@ class NMPC(Planner):
         """The half-planes of each stage 0 … N, shape (N+1, N_PLANES, 3), in mm (scaled); the
         chance margins from ``covariance`` (2×2), else from :attr:`position_covariance`."""
         cov = self.position_covariance if covariance is None else covariance
-        return self._with_start(self._corridor_ahead(reference, cov), state, cov)[0]
+        return self._with_start(self._corridor_ahead(reference, cov), state, cov)
 
     def _corridor_ahead(self, reference: FloatArray, cov: FloatArray | None) -> FloatArray:
         """:meth:`corridor`'s stages 1 … N (SI; stage 0 left inactive), which do not depend
@@ -125,37 +123,29 @@ class NMPC(Planner):
         return planes
 
     def _with_start(
-        self, ahead: FloatArray, state: FloatArray, cov: FloatArray | None,
-        prepared: float | None = None,
-    ) -> tuple[FloatArray, float]:  # fmt: skip
+        self, ahead: FloatArray, state: FloatArray, cov: FloatArray | None
+    ) -> FloatArray:
         """The stages 1 … N of ``ahead`` (SI) with stage 0's half-plane, at the start
-        ``state``, and the start's lead-out (module doc, "Corridor"): in mm (scaled); and the
-        start's intrusion into the margin (m, ≤ 0 outside it). The lead-out of a
-        ``prepared`` intrusion within one stage's recovery of the start's is the prepared
-        one (module doc)."""
+        ``state``, and the start's lead-out (module doc, "Corridor"): in mm (scaled)."""
         planes = ahead.copy()
         fs = self.free_space
         if fs is None:
-            return planes, 0.0
+            return planes
         cfg = self.config
         planes[0, 0] = fs.corridor(
             state[None, :2], cov, cfg.corridor_margin, cfg.corridor_sigmas, cfg.corridor_share
         )[0]
-        n, c = planes[0, 0, :2], planes[0, 0, 2]
-        axis = np.array([math.cos(state[2]), math.sin(state[2])]) * fs.half_axis
-        inside = float(c - min(n @ (state[:2] + axis), n @ (state[:2] - axis)))
         if cfg.corridor_recovery > 0:
             # a start already inside the margin (an estimate that a frame moved toward the
             # wall) is led back out at corridor_recovery, not within one stage (module doc)
-            stage = cfg.dt * cfg.corridor_recovery
-            lead = inside
-            if prepared is not None and abs(max(inside, 0.0) - max(prepared, 0.0)) <= stage:
-                lead = prepared
-            if lead > 0:
+            n, c = planes[0, 0, :2], planes[0, 0, 2]
+            axis = np.array([math.cos(state[2]), math.sin(state[2])]) * fs.half_axis
+            inside = c - min(n @ (state[:2] + axis), n @ (state[:2] - axis))
+            if inside > 0:
                 k = np.arange(len(planes))
-                planes[:, 0, 2] -= np.maximum(0.0, lead - k * stage)
+                planes[:, 0, 2] -= np.maximum(0.0, inside - k * cfg.dt * cfg.corridor_recovery)
         planes[:, :, 2] /= 1e-3  # c in mm, as the scaled positions
-        return planes, inside
+        return planes
 
     def predict(self, state: FloatArray, currents: FloatArray) -> FloatArray:
         X, u = np.asarray(state) / STATE_SCALE, np.asarray(currents) / self.max_current
@@ -180,17 +170,13 @@ class NMPC(Planner):
         u_prev = np.asarray(previous, dtype=np.float64) / self.max_current
         cov = self.position_covariance if covariance is None else covariance
         ahead, self._ahead = self._ahead, None
-        prepared, self._intrusion = self._intrusion, None
         if ahead is None or not (
             np.array_equal(ahead[0], ref) and _same(ahead[1], cov)
         ):  # not prepared for this reference and covariance (the plan is the same)
-            ahead, prepared = (ref, cov, self._corridor_ahead(ref, cov)), None
+            ahead = (ref, cov, self._corridor_ahead(ref, cov))
         if preparation:
             self._ahead = (ref.copy(), None if cov is None else cov.copy(), ahead[2])
-            prepared = None
-        planes, inside = self._with_start(ahead[2], x0, cov, prepared)
-        if preparation:
-            self._intrusion = inside
+        planes = self._with_start(ahead[2], x0, cov)
         return x0, u_prev, self.problem.stage_parameters(ref, planes)
 
     def _braking(self, x0: FloatArray, previous: FloatArray) -> Iterate:
@@ -220,10 +206,8 @@ class NMPC(Planner):
         covariance. With a phantom's corridor and a Kalman filter the margins follow the
         estimate's covariance before the tick's frame, the filter's prediction, which is
         known a tick ahead (:meth:`expect_uncertainty`): a frame's tick is prepared as any
-        other. A start in the corridor's margin keeps the prepared lead-out within one
-        stage's recovery of the predicted start's intrusion; further (a frame's jump), the
-        lead-out follows the measured start and the tick iterates in full (module doc,
-        "Corridor")."""
+        other. A tick whose start the corridor leads out of its margin (the lead-out follows
+        the measured start) iterates in full."""
         covariance = None
         if self.problem.has_corridor and self.position_covariance is not None:
             covariance = self._expected_covariance
