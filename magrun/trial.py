@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -147,6 +147,20 @@ def build_scene(protocol: Protocol, coils: CoilSystem | None = None) -> Scene:
     return Scene(reference, None, {}, None, half_width)
 
 
+_V = TypeVar("_V")
+
+
+def _kept(cache: dict[tuple[Any, ...], _V], key: tuple[Any, ...], limit: int,
+          make: Callable[[], _V]) -> _V:  # fmt: skip
+    """``cache[key]``, ``make()`` where it is missing: this process's memo of a costly
+    answer, emptied once it holds ``limit``."""
+    if key not in cache:
+        if len(cache) >= limit:
+            cache.clear()
+        cache[key] = make()
+    return cache[key]
+
+
 #: free_space_of's spaces by their geometry (a FreeSpace is immutable but for its own
 #: caches of the same geometry)
 _FREE_SPACES: dict[tuple[Any, ...], FreeSpace] = {}
@@ -155,22 +169,20 @@ _FREE_SPACES: dict[tuple[Any, ...], FreeSpace] = {}
 def free_space_of(scene: Scene, robot: RobotParams) -> FreeSpace:
     """The :class:`~magrun.freespace.FreeSpace` the controller is given: the phantom's outline
     and critical boundary, or the workspace square. Building one tabulates where the body
-    fits (a third of a second for the spine), so the last few are kept in this process: a
+    fits (a third of a second for the spine), so up to 8 are kept in this process: a
     campaign's trials, and a test session's, share their geometry."""
     boundaries = tuple(
         (name, np.asarray(line, dtype=np.float64).tobytes(), np.shape(line))
         for name, line in scene.boundaries.items()
     )
     key = (boundaries, scene.critical, scene.half_width, robot.length, robot.diameter)
-    if (space := _FREE_SPACES.get(key)) is None:
-        if len(_FREE_SPACES) >= 8:
-            _FREE_SPACES.clear()
+
+    def build() -> FreeSpace:
         if scene.boundaries:
-            space = FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
-        else:
-            space = FreeSpace.square(scene.half_width, robot.length, robot.diameter)
-        _FREE_SPACES[key] = space
-    return space
+            return FreeSpace(scene.boundaries, scene.critical, robot.length, robot.diameter)
+        return FreeSpace.square(scene.half_width, robot.length, robot.diameter)
+
+    return _kept(_FREE_SPACES, key, 8, build)
 
 
 # --------------------------------------------------------------------------------------------
@@ -512,14 +524,14 @@ def _remembered(
     knots = () if reference is None else (reference.t.tobytes(), reference.poses.tobytes())
     limits = np.atleast_1d(coils.max_current).tobytes()
     key = (kind, coils.folder, limits, repr(robot), *knots)
-    if key not in cache:
-        if len(cache) >= 32:
-            cache.clear()
+
+    def answer() -> tuple[float, ...]:
         inputs = (files_digest(coils.folder).encode(), limits, repr(robot).encode(), *knots)
-        cache[key] = remembered(
+        return remembered(
             kind, inputs, lambda: compute(load_system(coils.folder).models[1]), length
         )
-    return cache[key]
+
+    return _kept(cache, key, 32, answer)
 
 
 def nmpc_tuning(
