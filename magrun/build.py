@@ -52,7 +52,7 @@ def variants(protocol: Protocol, quick: bool = False) -> list[Trial]:
     for trial in [*trials, *protocol.expand(quick=True)]:
         if trial.index:
             continue
-        _, _, config, _ = controller_tuning(trial, system)
+        _, _, config, *_ = controller_tuning(trial, system)
         key = (trial.method, repr(config))
         if key in seen:
             continue

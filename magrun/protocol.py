@@ -408,6 +408,16 @@ class ControllerSettings(_Strict):
         20.0,
         description="The heading error, deg, that field_error_percent may cause (see there).",
     )
+    heading_lead_mm: Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)] = Field(
+        0.0,
+        description=(
+            "In a phantom, mm: where the path bends away from the critical wall, the NMPC "
+            "holds the heading the path has this far further on, so that a robot that far "
+            "ahead of its estimate is not turned into that wall (about 1.5 sigma of the "
+            "Kalman filter's position at the protocol's frame rate and noise). 0: the path's "
+            "own headings (docs: Control)."
+        ),
+    )
     soft_constraints: Literal["slack", "penalty", "auto"] = Field(
         "auto",
         description=(

@@ -167,8 +167,8 @@ def execute_trial(
             log, controller.dt, controller.max_current, parts.free_space,
             predict=controller.planner.predict, frame_ticks=parts.frame_ticks,
         )  # fmt: skip
-        if parts.planned is not scene.reference:  # headings the coils can hold (trial.py)
-            warnings.extend(_held_heading_warning(parts.planned, scene.reference))
+        if parts.held is not scene.reference:  # headings the coils can hold (trial.py)
+            warnings.extend(_held_heading_warning(parts.held, scene.reference))
         reason = log.stop_reason
         if log.interrupted:
             reason = f"stopped by {_signal_name(interrupt.requested())} at t = {log.t[-1]:.2f} s"

@@ -152,6 +152,57 @@ def out_and_back(
     return Trajectory(t=t, poses=poses)
 
 
+def lead_headings(reference: Trajectory, boundary: ArrayLike, lead: float) -> Trajectory:
+    """``reference`` with the heading of each pose on the move replaced by the path's heading
+    ``lead`` (m) further along it where that heading points further from ``boundary`` (a
+    polyline (n, 2), m: a phantom's critical wall); ``reference`` itself where no heading
+    changes.
+
+    In a bend whose outer wall is ``boundary`` the heading is then the one the robot needs
+    ``lead`` further on: a robot that far ahead of its estimate along the bend is still
+    turned along the channel, not into that wall. Along a straight run, in a bend that
+    turns toward ``boundary``, and where the robot holds or turns in place, the headings stay
+    as they are. "Further from" compares each heading's unit vector with the normal from
+    ``boundary``'s nearest point to the pose. A leg (a run of poses on the move) takes
+    headings from itself only, its last heading beyond its end.
+    """
+    poses = reference.poses
+    xy = poses[:, :2]
+    step = np.hypot(*np.diff(xy, axis=0).T)
+    moving = np.concatenate([step > 0, [False]]) | np.concatenate([[False], step > 0])
+    wall = np.asarray(boundary, dtype=np.float64).reshape(-1, 2)
+    if lead <= 0 or len(wall) < 2 or not moving.any():
+        return reference
+    a, ab = wall[:-1], np.diff(wall, axis=0)
+    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    rel = xy[:, None, :] - a[None]  # (poses, segments, 2)
+    u = np.clip(np.einsum("pij,ij->pi", rel, ab) / length2, 0.0, 1.0)
+    gap = rel - u[..., None] * ab
+    dist = np.hypot(gap[..., 0], gap[..., 1])
+    nearest = np.argmin(dist, axis=1)
+    rows = np.arange(len(xy))
+    normal = gap[rows, nearest] / np.maximum(dist[rows, nearest], 1e-300)[:, None]
+    theta = poses[:, 2].copy()
+    # legs: the runs of consecutive poses joined by a move
+    breaks = np.flatnonzero(step <= 0)
+    starts = np.concatenate([[0], breaks + 1])
+    ends = np.concatenate([breaks, [len(xy) - 1]])
+    for i0, i1 in zip(starts, ends, strict=True):
+        if i1 <= i0:
+            continue
+        s = np.concatenate([[0.0], np.cumsum(step[i0:i1])])
+        leg = poses[i0 : i1 + 1, 2]
+        ahead = np.interp(s + lead, s, leg)
+        n = normal[i0 : i1 + 1]
+        here = np.cos(leg) * n[:, 0] + np.sin(leg) * n[:, 1]
+        there = np.cos(ahead) * n[:, 0] + np.sin(ahead) * n[:, 1]
+        better = there > here + 1e-12
+        theta[i0 : i1 + 1] = np.where(better, ahead, leg)
+    if np.array_equal(theta, poses[:, 2]):
+        return reference
+    return Trajectory(reference.t, np.column_stack([xy, theta]))
+
+
 def capsule_disks(half_axis: float, radius: float) -> FloatArray:
     """Offsets (m) along a capsule's axis of the disks :meth:`Walls.resolve_capsule` tests."""
     n_disk = math.ceil(2 * half_axis / (radius / 2)) + 1 if half_axis > 0 else 1

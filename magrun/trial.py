@@ -318,6 +318,7 @@ class TrialParts:
     simulated: bool
     controller_build_s: float  # wall time of the controller's build (solvers, models)
     planned: Trajectory  # the reference the controller follows (ControllerParts.planned)
+    held: Trajectory  # the reference with the headings the coils can hold (ControllerParts.held)
 
     @property
     def protocol(self) -> Protocol:
@@ -368,9 +369,12 @@ class ControllerParts:
     free_space: FreeSpace
     controller: Controller
     build_s: float  # wall time of the controller's build (solvers, models)
-    #: the reference the controller follows: the scene's, with the headings the coils can
-    #: hold (:func:`planned_reference`; the scene's own object where they hold its own)
+    #: the reference the controller follows: :attr:`held`, with a phantom's headings led
+    #: (:func:`led_reference`; :attr:`held` itself without a lead)
     planned: Trajectory
+    #: the scene's reference with the headings the coils can hold (:func:`planned_reference`;
+    #: the scene's own object where they hold its own)
+    held: Trajectory
 
 
 def system_of(protocol: Protocol) -> System:
@@ -716,6 +720,17 @@ def planned_reference(
     return (held_trajectory(reference, offsets) if offsets.any() else reference), factor
 
 
+def led_reference(reference: Trajectory, scene: Scene, lead_mm: float) -> Trajectory:
+    """``reference`` with its headings led by ``lead_mm`` where the path bends away from the
+    scene's critical wall (:func:`magrun.scene.lead_headings`); ``reference`` itself without a
+    lead or a critical wall."""
+    from magrun.scene import lead_headings
+
+    if lead_mm <= 0 or scene.critical is None:
+        return reference
+    return lead_headings(reference, scene.boundaries[scene.critical], lead_mm * 1e-3)
+
+
 #: check_reach's verdicts in this process (_remembered)
 _REACH: dict[tuple[Any, ...], Any] = {}
 
@@ -776,9 +791,10 @@ def coil_gains_of(protocol: Protocol, coils: CoilSystem) -> FloatArray | None:
 
 def controller_tuning(
     trial: Trial, system: System
-) -> tuple[Scene, RobotParams, ControlConfig, Trajectory]:
-    """``trial``'s scene, robot, controller configuration and the reference its controller
-    follows, on ``system``: everything :func:`build_controller` builds the controller from."""
+) -> tuple[Scene, RobotParams, ControlConfig, Trajectory, Trajectory]:
+    """``trial``'s scene, robot, controller configuration, the reference its controller
+    follows and the one with only the headings the coils can hold (:class:`ControllerParts`),
+    on ``system``: everything :func:`build_controller` builds the controller from."""
     protocol = trial.protocol
     coils = system.coils
     scene = build_scene(protocol, coils)
@@ -786,10 +802,11 @@ def controller_tuning(
     config = control_config(protocol.controller, robot, trial.condition)
     # the NMPC plans the heading with the currents: it follows headings the coils can hold
     # (the two-layer baselines allocate a force and a field of their own choosing)
-    planned = scene.reference
+    planned = held_path = scene.reference
     if trial.method in NMPC_METHODS:
-        planned, factor = planned_reference(coils, scene.reference, robot)
-        held = planned is not scene.reference
+        held_path, factor = planned_reference(coils, scene.reference, robot)
+        held = held_path is not scene.reference
+        planned = led_reference(held_path, scene, protocol.controller.heading_lead_mm)
         config = replace(
             config, nmpc=nmpc_tuning(config.nmpc, protocol.controller, held, factor),
             integral_time=integral_time(protocol.controller, held, factor),
@@ -807,7 +824,7 @@ def controller_tuning(
         )  # fmt: skip
     else:
         config = two_layer_tuning(config, protocol.controller, coils, robot)
-    return scene, robot, config, planned
+    return scene, robot, config, planned, held_path
 
 
 def build_controller(
@@ -821,7 +838,7 @@ def build_controller(
     protocol = trial.protocol
     system = system or system_of(protocol)
     coils = system.coils
-    scene, robot, config, planned = controller_tuning(trial, system)
+    scene, robot, config, planned, held = controller_tuning(trial, system)
     if tune is not None:
         config = tune(config)
     free_space = free_space_of(scene, robot)
@@ -833,7 +850,7 @@ def build_controller(
         coil_gains=gains,
     )  # fmt: skip
     return ControllerParts(
-        scene, robot, config, free_space, controller, time.perf_counter() - t0, planned
+        scene, robot, config, free_space, controller, time.perf_counter() - t0, planned, held
     )
 
 
@@ -891,7 +908,7 @@ def assemble(
         raise
     return TrialParts(
         trial, robot, scene, parts.free_space, parts.config, controller, the_rig, tracker,
-        feedback, safety, simulated, parts.build_s, parts.planned,
+        feedback, safety, simulated, parts.build_s, parts.planned, parts.held,
     )  # fmt: skip
 
 

@@ -17,7 +17,7 @@ from pydantic import ValidationError
 from magrun.cli import cli
 from magrun.phantom import load_phantom
 from magrun.protocol import Protocol, condition_slug, json_schema, load_protocol
-from magrun.scene import out_and_back
+from magrun.scene import lead_headings, out_and_back
 from magrun.yamlio import YamlModelError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -238,6 +238,78 @@ def test_out_and_back_goes_holds_turns_and_returns() -> None:
     assert end[2] == pytest.approx(np.pi)
     assert traj.pose(t_far + 6.0 + 1.0)[2] == pytest.approx(3 * np.pi / 2)
     assert np.all(np.diff(traj.t) > 0)
+
+
+def _arc_out_and_back(radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """A quarter circle of ``radius`` (m) about the origin, counter-clockwise from (0, -r),
+    in 0.1 mm steps, out and back with a hold and a turn; and its angular step (rad)."""
+    dphi = 1e-4 / radius
+    phi = np.arange(-np.pi / 2, 0.0 + dphi / 2, dphi)
+    return radius * np.column_stack([np.cos(phi), np.sin(phi)]), dphi
+
+
+def _circle(radius: float) -> np.ndarray:
+    phi = np.linspace(-np.pi, np.pi, 2001)
+    return radius * np.column_stack([np.cos(phi), np.sin(phi)])
+
+
+def test_headings_lead_where_the_path_bends_away_from_the_boundary() -> None:
+    """Along a bend whose outer wall is the boundary, each heading on the move is the path's
+    heading ``lead`` further on: on a circle of radius r, lead / r further round (up to the
+    polyline's angular step), out and back; where less than ``lead`` of the leg is left, its
+    last heading. The hold and the turn in place keep theirs."""
+    r, lead = 13e-3, 1.5e-3
+    points, dphi = _arc_out_and_back(r)
+    ref = out_and_back(points, speed=3e-3, hold=2.0, flip=3.0)
+    led = lead_headings(ref, _circle(r + 2.5e-3), lead)
+    turn = led.poses[:, 2] - ref.poses[:, 2]
+    np.testing.assert_array_equal(led.poses[:, :2], ref.poses[:, :2])
+    np.testing.assert_array_equal(led.t, ref.t)
+    n = len(points)
+    leg = np.pi / 2 * r
+    s = np.arange(n) * 1e-4
+    far = s + lead <= leg - 1e-4  # where the leg goes on for the whole lead
+    # out (counter-clockwise: headings grow) and back (clockwise: they fall)
+    np.testing.assert_allclose(turn[:n][far], lead / r, atol=dphi)
+    np.testing.assert_allclose(turn[-n:][far], -lead / r, atol=dphi)
+    out_end = ref.poses[n - 1, 2]
+    np.testing.assert_allclose(led.poses[:n][~far, 2], out_end, atol=dphi)
+    # the hold and the turn in place: the poses between the legs, unchanged
+    np.testing.assert_array_equal(turn[n:-n], 0.0)
+    assert np.all(np.abs(turn) <= lead / r + dphi)
+
+
+def test_headings_stay_where_the_path_bends_toward_the_boundary_or_runs_straight() -> None:
+    r = 13e-3
+    points, _ = _arc_out_and_back(r)
+    ref = out_and_back(points, speed=3e-3, hold=2.0, flip=3.0)
+    assert lead_headings(ref, _circle(r - 2.5e-3), 1.5e-3) is ref  # the inner wall
+    assert lead_headings(ref, _circle(r + 2.5e-3), 0.0) is ref
+    straight = out_and_back(np.array([[0.0, 0.0], [0.02, 0.0]]), speed=3e-3)
+    wall = np.array([[-0.01, 2.5e-3], [0.03, 2.5e-3]])
+    assert lead_headings(straight, wall, 1.5e-3) is straight
+
+
+def test_a_heading_lead_reaches_the_nmpc_only_and_not_the_held_heading_warning() -> None:
+    """``controller.heading_lead_mm`` turns the reference the NMPC follows in the phantom's
+    bends; the recorded reference, the baselines' and the one the held-heading warning
+    compares (the headings the coils can hold) stay the path's."""
+    from magrun.trial import controller_tuning, system_of
+
+    channel = ROOT / "protocols" / "channel.yaml"
+    overrides = ["controller.heading_lead_mm=1.5", "methods=[proposed, baseline3]", "trials=1"]
+    protocol = load_protocol(channel, overrides)
+    system = system_of(protocol)
+    by_method = {t.method: controller_tuning(t, system) for t in protocol.expand()}
+    scene, _, _, planned, held = by_method["proposed"]
+    assert held is scene.reference  # the coils hold the capsule's headings in this phantom
+    turn = np.degrees(planned.poses[:, 2] - scene.reference.poses[:, 2])
+    assert 0 < np.abs(turn).max() < 10  # 1.5 mm round the 10 and 14 mm bends: 6.4-8.6 deg
+    np.testing.assert_array_equal(planned.poses[:, :2], scene.reference.poses[:, :2])
+    scene3, _, _, planned3, _ = by_method["baseline3"]
+    assert planned3 is scene3.reference
+    plain = controller_tuning(load_protocol(channel).expand()[0], system)
+    assert plain[3] is plain[0].reference
 
 
 def test_the_committed_json_schema_is_current() -> None:
