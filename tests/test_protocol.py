@@ -293,7 +293,8 @@ def test_headings_stay_where_the_path_bends_toward_the_boundary_or_runs_straight
 def test_a_heading_lead_reaches_the_nmpc_only_and_not_the_held_heading_warning() -> None:
     """``controller.heading_lead_mm`` turns the reference the NMPC follows in the phantom's
     bends; the recorded reference, the baselines' and the one the held-heading warning
-    compares (the headings the coils can hold) stay the path's."""
+    compares (the headings the coils can hold) stay the path's; with no lead the NMPC
+    follows the path's own."""
     from magrun.trial import controller_tuning, system_of
 
     channel = ROOT / "protocols" / "channel.yaml"
@@ -308,8 +309,9 @@ def test_a_heading_lead_reaches_the_nmpc_only_and_not_the_held_heading_warning()
     np.testing.assert_array_equal(planned.poses[:, :2], scene.reference.poses[:, :2])
     scene3, _, _, planned3, _ = by_method["baseline3"]
     assert planned3 is scene3.reference
-    plain = controller_tuning(load_protocol(channel).expand()[0], system)
-    assert plain[3] is plain[0].reference
+    plain = load_protocol(channel, ["controller.heading_lead_mm=0"]).expand()[0]
+    unled = controller_tuning(plain, system)
+    assert unled[3] is unled[0].reference
 
 
 def test_the_committed_json_schema_is_current() -> None:
