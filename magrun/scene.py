@@ -169,19 +169,10 @@ def lead_headings(reference: Trajectory, boundary: ArrayLike, lead: float) -> Tr
     poses = reference.poses
     xy = poses[:, :2]
     step = np.hypot(*np.diff(xy, axis=0).T)
-    moving = np.concatenate([step > 0, [False]]) | np.concatenate([[False], step > 0])
     wall = np.asarray(boundary, dtype=np.float64).reshape(-1, 2)
-    if lead <= 0 or len(wall) < 2 or not moving.any():
+    if lead <= 0 or len(wall) < 2 or not np.any(step > 0):
         return reference
-    a, ab = wall[:-1], np.diff(wall, axis=0)
-    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
-    rel = xy[:, None, :] - a[None]  # (poses, segments, 2)
-    u = np.clip(np.einsum("pij,ij->pi", rel, ab) / length2, 0.0, 1.0)
-    gap = rel - u[..., None] * ab
-    dist = np.hypot(gap[..., 0], gap[..., 1])
-    nearest = np.argmin(dist, axis=1)
-    rows = np.arange(len(xy))
-    normal = gap[rows, nearest] / np.maximum(dist[rows, nearest], 1e-300)[:, None]
+    normal = _normals_from(wall, xy)
     theta = poses[:, 2].copy()
     # legs: the runs of consecutive poses joined by a move
     breaks = np.flatnonzero(step <= 0)
@@ -201,6 +192,25 @@ def lead_headings(reference: Trajectory, boundary: ArrayLike, lead: float) -> Tr
     if np.array_equal(theta, poses[:, 2]):
         return reference
     return Trajectory(reference.t, np.column_stack([xy, theta]))
+
+
+def _normals_from(wall: FloatArray, points: FloatArray) -> FloatArray:
+    """The unit vectors (m, 2) from the polyline ``wall``'s nearest point to each of
+    ``points`` (m, 2), in blocks of about a million point-segment pairs (a dense outline and
+    a long path need no more memory than that)."""
+    a, ab = wall[:-1], np.diff(wall, axis=0)
+    length2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    out = np.empty_like(points)
+    block = max(1, 1_000_000 // len(a))
+    for k in range(0, len(points), block):
+        rel = points[k : k + block, None, :] - a[None]  # (points, segments, 2)
+        u = np.clip(np.einsum("pij,ij->pi", rel, ab) / length2, 0.0, 1.0)
+        gap = rel - u[..., None] * ab
+        dist = np.hypot(gap[..., 0], gap[..., 1])
+        nearest = np.argmin(dist, axis=1)
+        rows = np.arange(len(rel))
+        out[k : k + block] = gap[rows, nearest] / np.maximum(dist[rows, nearest], 1e-300)[:, None]
+    return out
 
 
 def capsule_disks(half_axis: float, radius: float) -> FloatArray:

@@ -248,12 +248,13 @@ def _arc_out_and_back(radius: float) -> tuple[np.ndarray, np.ndarray]:
     return radius * np.column_stack([np.cos(phi), np.sin(phi)]), dphi
 
 
-def _circle(radius: float) -> np.ndarray:
-    phi = np.linspace(-np.pi, np.pi, 2001)
+def _circle(radius: float, n: int = 2001) -> np.ndarray:
+    phi = np.linspace(-np.pi, np.pi, n)
     return radius * np.column_stack([np.cos(phi), np.sin(phi)])
 
 
-def test_headings_lead_where_the_path_bends_away_from_the_boundary() -> None:
+@pytest.mark.parametrize("wall_points", [2001, 20_001])  # the second: in blocks of 49 poses
+def test_headings_lead_where_the_path_bends_away_from_the_boundary(wall_points: int) -> None:
     """Along a bend whose outer wall is the boundary, each heading on the move is the path's
     heading ``lead`` further on: on a circle of radius r, lead / r further round (up to the
     polyline's angular step), out and back; where less than ``lead`` of the leg is left, its
@@ -261,7 +262,7 @@ def test_headings_lead_where_the_path_bends_away_from_the_boundary() -> None:
     r, lead = 13e-3, 1.5e-3
     points, dphi = _arc_out_and_back(r)
     ref = out_and_back(points, speed=3e-3, hold=2.0, flip=3.0)
-    led = lead_headings(ref, _circle(r + 2.5e-3), lead)
+    led = lead_headings(ref, _circle(r + 2.5e-3, wall_points), lead)
     turn = led.poses[:, 2] - ref.poses[:, 2]
     np.testing.assert_array_equal(led.poses[:, :2], ref.poses[:, :2])
     np.testing.assert_array_equal(led.t, ref.t)
