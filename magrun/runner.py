@@ -618,6 +618,7 @@ def run_protocol(
     resume: bool = False,
     view: str = "",
     check_reach: bool = True,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Run every trial of ``protocol``; returns the manifest (also written to disk).
 
@@ -628,6 +629,8 @@ def run_protocol(
     A stop signal (:mod:`magrun.interrupt`) ends the running trials cleanly, starts no new
     one and records the signal under ``interrupted`` in the manifest. ``view`` streams each
     trial to a Rerun viewer as well (:func:`local_executor`; an ``executor`` has its own).
+    What the checks before the first trial warn of (:func:`magrun.trial.check_system`) goes
+    to ``warn`` as it is found and into the manifest's ``warnings``.
     """
     if isinstance(rig, HardwareSpec):
         if jobs != 1 or executor is not None:
@@ -639,9 +642,17 @@ def run_protocol(
     # a bad system folder, or damaged maps or models in it, fail here (RunError), before any run
     # and so does a trajectory the coils cannot move the robot along (unless not asked)
     # and, with camera feedback in simulation, a robot the camera's tracker cannot find
+    notes: list[str] = []
+
+    def noted(line: str) -> None:
+        notes.append(line)
+        if warn is not None:
+            warn(line)
+
     coils = check_system(
-        protocol, feasibility=check_reach, tracking=rig == "sim" and protocol.feedback.camera
-    )
+        protocol, feasibility=check_reach, tracking=rig == "sim" and protocol.feedback.camera,
+        warn=noted,
+    )  # fmt: skip
     if isinstance(rig, HardwareSpec):
         # an unknown scheme, a rig out of reach or one whose channels or limits are not the
         # system's fails here (RunError), before a folder is made or a current sent
@@ -660,7 +671,7 @@ def run_protocol(
     try:
         return _run_locked(
             protocol, folder, quick, seed, jobs, rig, executor, overwrite, protocol_file,
-            on_trial, progress, resume, view,
+            on_trial, progress, resume, view, notes,
         )  # fmt: skip
     finally:
         lock.release()
@@ -682,6 +693,7 @@ def _run_locked(
     progress: ProgressFn | None,
     resume: bool,
     view: str,
+    notes: list[str],
 ) -> dict[str, Any]:
     """:func:`run_protocol`'s work in ``folder``, whose lock the caller holds."""
     out = folder.parent
@@ -716,6 +728,7 @@ def _run_locked(
         **({"driver": rig.driver, "camera": rig.camera} if isinstance(rig, HardwareSpec) else {}),
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "software": software_versions(),
+        **({"warnings": notes} if notes else {}),
         "trials": [manifest_entry(t) for t in trials],
     }
     index = {e["path"]: i for i, e in enumerate(manifest["trials"])}

@@ -47,6 +47,7 @@ from magrun.field.coils import CoilFileError, CoilSystem
 from magrun.field.model import PlanarFieldModel
 from magrun.field.system import System, load_system
 from magrun.freespace import FreeSpace
+from magrun.health import CONTACT
 from magrun.loop import PoseTracker, TrialLog, run_trial
 from magrun.protocol import (
     Conditions,
@@ -388,7 +389,10 @@ def system_of(protocol: Protocol) -> System:
 
 
 def check_system(
-    protocol: Protocol, feasibility: bool = True, tracking: bool = False
+    protocol: Protocol,
+    feasibility: bool = True,
+    tracking: bool = False,
+    warn: Callable[[str], None] | None = None,
 ) -> CoilSystem:
     """What every trial of ``protocol`` is built from, built once and checked, before a run
     folder is made (``magrun run``); a :class:`RunError` names the problem:
@@ -396,7 +400,11 @@ def check_system(
     - the system folder's description, maps and fitted models, read as a trial reads them
       (a damaged map, a model fitted to another system);
     - the scene: the robot's body must fit in the workspace (the phantom's outline within
-      the coils' square), and the reference trajectory must stay inside both;
+      the coils' square), and the reference trajectory must stay inside both; in a phantom,
+      the body on the reference path must clear the critical boundary by more than what
+      counts as touching (:data:`magrun.health.CONTACT`; not checked without
+      ``feasibility``), and ``warn`` is told where it clears it by less than the NMPC's
+      corridor margin (:func:`path_clearance`);
     - with ``feasibility``, the coils' reach: at every pose of the trajectory, currents
       within the limits must give the robot its velocity and turn rate while holding a
       heading (:func:`magrun.field.capability.trajectory_capability`);
@@ -426,11 +434,52 @@ def check_system(
             f"trajectory: leaves {where} at ({x:.2f}, {y:.2f}) mm (workspace: ±"
             f"{scene.half_width * 1e3:g} mm)"
         )
+    clear = path_clearance(scene, space)
+    if clear is not None:
+        least, t, (x, y) = clear.least, clear.t, clear.position * 1e3
+        where = (
+            f"the robot's body on the reference path comes within {least * 1e3:.2f} mm of the "
+            f"critical boundary {scene.critical!r} at ({x:.2f}, {y:.2f}) mm, t = {t:.2f} s"
+        )
+        if least <= CONTACT and feasibility:
+            raise RunError(
+                f"trajectory: {where}: every trial would count as touching it (at most "
+                f"{CONTACT * 1e3:g} mm); move the path (or pass --allow-infeasible)"
+            )
+        if least < NMPCConfig.corridor_margin and warn is not None:
+            warn(
+                f"{where}: less than the {NMPCConfig.corridor_margin * 1e3:g} mm the NMPC's "
+                "corridor keeps, so the controller holds the robot off the path there and "
+                "trials are likely to touch that boundary"
+            )
     if feasibility:
         check_reach(coils, scene.reference, robot)
     if tracking:
         check_tracking(robot)
     return coils
+
+
+@dataclass(frozen=True)
+class PathClearance:
+    """Where the robot's body on a reference path comes closest to the critical boundary."""
+
+    least: float  # m, the body's least clearance (negative: it overlaps the boundary)
+    t: float  # s, the reference's time there
+    position: FloatArray  # (2,) m, the body's centre there
+
+
+def path_clearance(scene: Scene, space: FreeSpace) -> PathClearance | None:
+    """The least clearance of the body (``space``'s robot) from ``scene``'s critical boundary
+    at the reference's poses (its turns in place included); None without a critical
+    boundary. The reference is linear between its poses, which lie at most a few tenths of a
+    millimetre apart on a phantom's path, so its clearance between them is within a few µm
+    of theirs."""
+    if scene.critical is None or scene.critical not in space.boundaries:
+        return None
+    poses = scene.reference.poses
+    clearance = np.array([space.clearance(p, [scene.critical]) for p in poses])
+    i = int(np.argmin(clearance))
+    return PathClearance(float(clearance[i]), float(scene.reference.t[i]), poses[i, :2].copy())
 
 
 #: frames of :func:`check_tracking`'s probe, and the share of them the tracker may lose

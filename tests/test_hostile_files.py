@@ -12,6 +12,7 @@ the robot; protocol numbers that would run for ever.
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import shutil
@@ -29,7 +30,8 @@ from magrun.cli import cli
 from magrun.field.fitting import FIGURE_FILE, read_figure_data
 from magrun.field.mpem import MpemError, MpemModel, import_mpem
 from magrun.protocol import load_protocol
-from magrun.trial import RunError, check_system
+from magrun.runner import run_protocol
+from magrun.trial import RunError, build_scene, check_system, free_space_of, path_clearance
 from magrun.yamlio import MAX_YAML_CHARS, YamlModelError, safe_json
 
 DEEP = "[" * 200_000 + "]" * 200_000
@@ -383,6 +385,62 @@ def test_a_phantom_with_no_room_for_the_robot_is_refused_before_a_run(tmp_path: 
         assert code == 2, out
         assert "fits nowhere" in out, out
         assert not (tmp_path / "out" / "p").exists()
+
+
+def _band_protocol(tmp: Path, y0: float) -> Path:
+    """A 30 mm band with its critical floor at y = -15 mm and a path along y = ``y0`` mm: the
+    16 mm magnet robot's least clearance on it is ``y0`` + 15 − 8 mm, where it turns in place
+    at the far end (an end 8 mm below its centre) as an out-and-back path does."""
+    return _phantom_protocol(
+        tmp,
+        "boundaries:\n  a:\n    - points: [[-30, -15], [30, -15]]\n  b:\n"
+        "    - points: [[30, -15], [30, 15], [-30, 15], [-30, -15]]\n"
+        f"path:\n  - points: [[-5, {y0}], [5, {y0}]]\n",
+    )
+
+
+def test_a_path_that_puts_the_body_on_the_critical_boundary_is_refused(tmp_path: Path) -> None:
+    """The body on the path 0.02 mm from the critical floor (within the 0.05 mm that counts
+    as touching): refused before a run, naming where; --allow-infeasible runs it."""
+    protocol = _band_protocol(tmp_path, -6.98)
+    with pytest.raises(RunError, match=r"comes within 0\.02 mm of the critical boundary 'a' at"):
+        check_system(load_protocol(protocol))
+    check_system(load_protocol(protocol), feasibility=False)
+    code, out = _invoke("run", protocol, "--out", tmp_path / "out")
+    assert code == 2, out
+    assert "every trial would count as touching it" in out, out
+    assert not (tmp_path / "out" / "p").exists()
+
+
+@pytest.mark.parametrize("y0", [-6.7, -6.0])
+def test_a_path_close_to_the_critical_boundary_is_warned_of(tmp_path: Path, y0: float) -> None:
+    """0.3 mm of clearance on the path (less than the NMPC's 0.5 mm corridor margin) is run
+    with a warning that gives it; 1 mm is not warned of. The least clearance is the turn's
+    (theory: ``y0`` + 7 mm, to 1 µm)."""
+    protocol = load_protocol(_band_protocol(tmp_path, y0))
+    scene = build_scene(protocol)
+    clear = path_clearance(scene, free_space_of(scene, protocol.robot_params()))
+    assert clear is not None
+    assert clear.least == pytest.approx((y0 + 7.0) * 1e-3, abs=1e-6)
+    assert clear.position[0] == pytest.approx(5e-3, abs=1e-6)  # where it turns
+    warned: list[str] = []
+    check_system(protocol, feasibility=False, warn=warned.append)
+    if y0 + 7.0 < 0.5:
+        assert len(warned) == 1, warned
+        assert "comes within 0.30 mm of the critical boundary 'a'" in warned[0], warned
+        # a run passes it on as it starts and keeps it in the manifest (no trial run here)
+        told: list[str] = []
+        manifest = run_protocol(
+            protocol, tmp_path / "out", executor=lambda *_: iter(()), check_reach=False,
+            warn=told.append,
+        )  # fmt: skip
+        assert told == warned
+        assert manifest["warnings"] == warned
+        assert (
+            json.loads((tmp_path / "out" / "p" / "manifest.json").read_text())["warnings"] == warned
+        )
+    else:
+        assert warned == []
 
 
 def test_a_trajectory_leaving_the_workspace_is_refused(tmp_path: Path) -> None:

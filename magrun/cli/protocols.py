@@ -96,6 +96,10 @@ class _RunProgress:
                 err=True,
             )  # fmt: skip
 
+    def warn(self, line: str) -> None:
+        """A warning on stderr, above the bars on a terminal."""
+        self._tqdm.write(f"warning: {line}", file=sys.stderr)
+
     def close(self) -> None:
         for bar in self.trials.values():
             bar.close()
@@ -146,6 +150,7 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
             lines.append(f"FAILED {e['path']}: {error or 'no error recorded'}")
         for warning in e.get("warnings") or []:
             lines.append(f"WARNING {e['path']}: {warning}")
+    lines.extend(f"WARNING {manifest['protocol']}: {w}" for w in manifest.get("warnings", []))
     return lines
 
 
@@ -192,7 +197,8 @@ def _summary(manifest: dict[str, Any]) -> list[str]:
 )  # fmt: skip
 @click.option(
     "--allow-infeasible", is_flag=True,
-    help="Run a trajectory the coils cannot move the robot along (refused by default).",
+    help="Run a trajectory the coils cannot move the robot along, or one that puts the "
+    "robot's body on a phantom's critical boundary (refused by default).",
 )  # fmt: skip
 @live_view_options
 def run(
@@ -227,7 +233,9 @@ def run(
 
     Before anything runs, the trajectory is checked against what the coils can do with the
     robot (the velocity at every pose, the robot's field held, within the current limits):
-    one they cannot follow exits 2, naming where, unless --allow-infeasible.
+    one they cannot follow exits 2, naming where, unless --allow-infeasible. In a phantom, so
+    is a path on which the robot's body touches the critical boundary; one that passes it
+    closer than the NMPC's corridor margin (0.5 mm) is run with a warning.
 
     With --view, --connect or --web each trial is also streamed to a Rerun viewer while it
     runs, one recording per trial, with the same views as its .rrd. The recordings are
@@ -295,6 +303,7 @@ def _run(
                 overwrite=overwrite, protocol_file=str(protocol_file),
                 on_trial=progress.trial_done, progress=progress.tick, resume=resume, view=url,
                 check_reach=check_reach,
+                warn=progress.warn,
             )  # fmt: skip
     except RunError as exc:
         raise InputError(str(exc)) from exc
