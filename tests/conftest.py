@@ -27,9 +27,11 @@ for _name in THREAD_ENV:
 threadpool_limits(limits=1, user_api="blas")
 
 # The fuzz tests draw the same examples on every run (a run passes or fails by the code
-# alone, on any machine); MAGRUN_FUZZ_EXPLORE=1 draws new ones (docs/development.md).
-settings.register_profile("repeatable", derandomize=True)
-settings.register_profile("explore", derandomize=False)
+# alone, on any machine); MAGRUN_FUZZ_EXPLORE=1 draws new ones (docs/development.md). No
+# deadline per example: a first example that imports or compiles, or a loaded machine, takes
+# longer than hypothesis's 200 ms, and a test passes or fails by what it computes, not its time.
+settings.register_profile("repeatable", derandomize=True, deadline=None)
+settings.register_profile("explore", derandomize=False, deadline=None)
 settings.load_profile("explore" if os.environ.get("MAGRUN_FUZZ_EXPLORE") == "1" else "repeatable")
 
 
