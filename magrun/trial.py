@@ -437,14 +437,19 @@ def check_system(
     clear = path_clearance(scene, space)
     if clear is not None:
         least, t, (x, y) = clear.least, clear.t, clear.position * 1e3
+        near = (
+            f"overlaps the critical boundary {scene.critical!r} by {-least * 1e3:.2f} mm"
+            if least < 0
+            else f"comes within {least * 1e3:.2f} mm of the critical boundary {scene.critical!r}"
+        )
         where = (
-            f"the robot's body on the reference path comes within {least * 1e3:.2f} mm of the "
-            f"critical boundary {scene.critical!r} at ({x:.2f}, {y:.2f}) mm, t = {t:.2f} s"
+            f"the robot's body on the reference path {near} at ({x:.2f}, {y:.2f}) mm, t = {t:.2f} s"
         )
         if least <= CONTACT and feasibility:
             raise RunError(
                 f"trajectory: {where}: every trial would count as touching it (at most "
-                f"{CONTACT * 1e3:g} mm); move the path (or pass --allow-infeasible)"
+                f"{CONTACT * 1e3:g} mm); move the path ({_path_source(protocol)}) or pass "
+                "--allow-infeasible"
             )
         if least < NMPCConfig.corridor_margin and warn is not None:
             warn(
@@ -457,6 +462,15 @@ def check_system(
     if tracking:
         check_tracking(robot)
     return coils
+
+
+def _path_source(protocol: Protocol) -> str:
+    """Where ``protocol``'s reference path is written: its phantom file's ``path`` or its own
+    ``trajectory.path``."""
+    ws = getattr(protocol.workspace, "phantom", None)
+    if getattr(protocol.trajectory, "path", None) == "phantom" and ws is not None:
+        return f"'path' in {ws}"
+    return "the protocol's 'trajectory.path'"
 
 
 @dataclass(frozen=True)

@@ -406,9 +406,14 @@ def test_a_path_that_puts_the_body_on_the_critical_boundary_is_refused(tmp_path:
     with pytest.raises(RunError, match=r"comes within 0\.02 mm of the critical boundary 'a' at"):
         check_system(load_protocol(protocol))
     check_system(load_protocol(protocol), feasibility=False)
+    through = _band_protocol(tmp_path, -7.5)  # the turning body 0.5 mm through the floor
+    with pytest.raises(RunError, match=r"overlaps the critical boundary 'a' by 0\.50 mm at \(5"):
+        check_system(load_protocol(through))
+    protocol = _band_protocol(tmp_path, -6.98)
     code, out = _invoke("run", protocol, "--out", tmp_path / "out")
     assert code == 2, out
     assert "every trial would count as touching it" in out, out
+    assert "move the path ('path' in " in out, out
     assert not (tmp_path / "out" / "p").exists()
 
 

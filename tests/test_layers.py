@@ -52,8 +52,10 @@ def test_no_control_tick_imports_a_module() -> None:
     fallback), assembled, then run for 1 s each. The modules the fallbacks use are in memory
     once the controller is built, and Numba's once the simulated plant is (magrun.rigs.kernel).
     What a machine compiles once (the NMPC's kernel, the plant's Numba code: `magrun build`)
-    is compiled by a first interpreter running the same, so that the second one checked loads
-    it from the cache, as every trial after the first on a machine does."""
+    may import more while it compiles: where the first interpreter's ticks imported anything,
+    a second one runs the same, loading it from the cache as every trial after the first on a
+    machine does, and that one is checked. (A first run that imported nothing passes
+    as it is: the cache was warm, or compiling imported nothing in a tick either.)"""
     code = (
         "import sys\n"
         "from magrun.protocol import load_protocol\n"
@@ -71,11 +73,14 @@ def test_no_control_tick_imports_a_module() -> None:
         "print()\n"
         "print(' '.join(new))\n"
     )
-    for _ in ("build", "check"):
+    for _ in ("first", "from the cache"):
         out = subprocess.run(
             [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
         )
-    assert out.stdout.splitlines()[-1].split() == []
+        imported = out.stdout.splitlines()[-1].split()
+        if not imported:
+            break
+    assert imported == []
 
 
 def _contract(name_start: str) -> tuple[dict, set[str]]:
