@@ -524,6 +524,28 @@ class FreeSpace:
         lo = max(float(behind.max()) if behind.size else -reach, -reach)
         return lo, hi
 
+    def clearances(
+        self, poses: ArrayLike, names: list[str] | None = None, pairs: int = 1_000_000
+    ) -> FloatArray:
+        """:meth:`clearance` at each of ``poses`` (m, 3), m: every wall segment against every
+        pose, vectorised in blocks of about ``pairs`` pose-segment pairs (a long path's check
+        before a run)."""
+        p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        axis = np.column_stack([np.cos(p[:, 2]), np.sin(p[:, 2])]) * self.half_axis
+        e0, e1 = p[:, :2] - axis, p[:, :2] + axis
+        a, ab, _, _ = self._group(tuple(names or list(self.boundaries)))
+        b = a + ab
+        out = np.empty(len(p))
+        step = max(1, pairs // len(a))
+        for i in range(0, len(p), step):
+            s0, s1 = e0[i : i + step, None], e1[i : i + step, None]  # (k, 1, 2)
+            d = np.minimum(point_to_segments(s0, a, b), point_to_segments(s1, a, b))
+            d = np.minimum(d, point_to_segments(a, s0, s1))  # the walls' ends to the axis
+            d = np.minimum(d, point_to_segments(b, s0, s1))
+            d = np.where(segments_cross(s0, s1, a, b), 0.0, d)  # proper crossings touch
+            out[i : i + step] = d.min(axis=1) - self.radius
+        return out
+
     def clearance(self, pose: ArrayLike, names: list[str] | None = None) -> float:
         """Least distance, m, from the body at ``pose`` to the named boundaries (default:
         all); negative when it overlaps one."""

@@ -491,7 +491,7 @@ def path_clearance(scene: Scene, space: FreeSpace) -> PathClearance | None:
     if scene.critical is None or scene.critical not in space.boundaries:
         return None
     poses = scene.reference.poses
-    clearance = np.array([space.clearance(p, [scene.critical]) for p in poses])
+    clearance = space.clearances(poses, [scene.critical])
     i = int(np.argmin(clearance))
     return PathClearance(float(clearance[i]), float(scene.reference.t[i]), poses[i, :2].copy())
 

@@ -165,6 +165,27 @@ def test_nearest_for_one_point_is_the_nearest_for_many_to_the_last_bit(spine: Fr
             np.testing.assert_array_equal(n1[0], n[i])
 
 
+def test_clearances_of_many_poses_are_each_poses_clearance(spine: FreeSpace) -> None:
+    """The vectorised clearances (a path's check before a run) against :meth:`clearance`, one
+    pose at a time (which looks only at the walls within the body's reach): inside the
+    channel, across its walls (negative) and far outside, to 1e-12 m; in blocks of one pose
+    and of seven (the last one shorter) alike; a body that is a point too."""
+    rng = np.random.default_rng(8)
+    poses = np.column_stack([rng.uniform(-0.025, 0.025, (300, 2)), rng.uniform(-4, 4, 300)])
+    robot = load_robots()["drug_delivery"]
+    dot = FreeSpace(spine.boundaries, spine.critical, robot.diameter, robot.diameter)
+    for fs in (spine, dot):
+        for names in (["anterior"], None):
+            want = np.array([fs.clearance(p, names) for p in poses])
+            assert np.any(want < 0)  # overlapping
+            assert np.any(want > 1e-3)  # and clear
+            np.testing.assert_allclose(fs.clearances(poses, names), want, rtol=0, atol=1e-12)
+    want = np.array([spine.clearance(p, ["anterior"]) for p in poses])
+    for pairs in (1, 7 * 148):  # one pose a block; 7 (the anterior wall's 148 segments each)
+        got = spine.clearances(poses, ["anterior"], pairs=pairs)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
 def test_corridor_for_one_point_is_the_vectorised_corridor_to_the_last_bit(
     spine: FreeSpace,
 ) -> None:
