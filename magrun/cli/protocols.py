@@ -24,8 +24,9 @@ def validate(protocols: tuple[Path, ...]) -> None:
     Exit status 0 when every file is valid; 2 with one line per problem (file:line: field:
     message) otherwise. `magrun run` checks more before its first trial, without loading a
     solver here: the system folder's maps and models, the robot's room in the workspace,
-    the coils' reach along the trajectory and, with camera feedback in simulation, that the
-    camera's tracker finds the robot.
+    the robot's clearance from a phantom's critical boundary along its path, the coils'
+    reach along the trajectory and, with camera feedback in simulation, that the camera's
+    tracker finds the robot.
     """
     for path, protocol in zip(protocols, load_protocols(protocols), strict=True):
         n, nq = len(protocol.expand()), len(protocol.expand(quick=True))
