@@ -482,18 +482,47 @@ class PathClearance:
     position: FloatArray  # (2,) m, the body's centre there
 
 
+#: m: how far the body's ends move between two of the poses :func:`path_clearance` checks
+PATH_CHECK_SPACING = 10e-6
+
+
 def path_clearance(scene: Scene, space: FreeSpace) -> PathClearance | None:
     """The least clearance of the body (``space``'s robot) from ``scene``'s critical boundary
-    at the reference's poses (its turns in place included); None without a critical
-    boundary. The reference is linear between its poses, which lie at most a few tenths of a
-    millimetre apart on a phantom's path, so its clearance between them is within a few µm
-    of theirs."""
+    along the reference (its turns in place included); None without a critical boundary.
+
+    The reference is linear between its poses, which may lie far apart (a path of a few
+    points of the user's own). The body's clearance changes by at most as much as its ends
+    move, so a piece between two poses whose clearances are c₀ and c₁ and along which the
+    ends move by τ cannot come closer than (c₀ + c₁ − τ)/2. Pieces that could come closer
+    than the least found so far are cut in four and checked again, until their ends move by
+    at most :data:`PATH_CHECK_SPACING` (10 µm) along them: the least found is within that of
+    the least on the whole path (branch and bound)."""
     if scene.critical is None or scene.critical not in space.boundaries:
         return None
-    poses = scene.reference.poses
-    clearance = space.clearances(poses, [scene.critical])
-    i = int(np.argmin(clearance))
-    return PathClearance(float(clearance[i]), float(scene.reference.t[i]), poses[i, :2].copy())
+    ref, names = scene.reference, [scene.critical]
+    at = space.clearances(ref.poses, names)
+    i = int(np.argmin(at))
+    best, best_t = float(at[i]), float(ref.t[i])
+    d = np.diff(ref.poses, axis=0)
+    tau = np.hypot(d[:, 0], d[:, 1]) + (space.half_axis + space.radius) * np.abs(d[:, 2])
+    t0, t1, c0, c1 = ref.t[:-1], ref.t[1:], at[:-1], at[1:]
+    cuts = np.arange(1, 4) / 4
+    while True:
+        open_ = ((c0 + c1 - tau) / 2 < best) & (tau > PATH_CHECK_SPACING)
+        if not np.any(open_):
+            break
+        t0, t1, c0, c1, tau = t0[open_], t1[open_], c0[open_], c1[open_], tau[open_] / 4
+        inner = t0[:, None] + (t1 - t0)[:, None] * cuts  # (m, 3) times inside each piece
+        c = space.clearances(ref.pose(inner.ravel()), names).reshape(inner.shape)
+        j = int(np.argmin(c))
+        if c.flat[j] < best:
+            best, best_t = float(c.flat[j]), float(inner.flat[j])
+        times = np.column_stack([t0, inner, t1])  # (m, 5): the four pieces' ends
+        ends = np.column_stack([c0, c, c1])
+        t0, t1 = times[:, :-1].ravel(), times[:, 1:].ravel()
+        c0, c1 = ends[:, :-1].ravel(), ends[:, 1:].ravel()
+        tau = np.repeat(tau, 4)
+    return PathClearance(best, best_t, ref.pose(best_t)[:2].copy())
 
 
 #: frames of :func:`check_tracking`'s probe, and the share of them the tracker may lose

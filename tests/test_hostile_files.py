@@ -448,6 +448,33 @@ def test_a_path_close_to_the_critical_boundary_is_warned_of(tmp_path: Path, y0: 
         assert warned == []
 
 
+def test_the_path_is_checked_between_its_poses(tmp_path: Path) -> None:
+    """A path of two points 40 mm apart over a spike of the critical floor (up to y = -7.7 mm)
+    midway: at the reference's poses (its ends and the turn) the body clears the floor by
+    1 mm at least, but crossing the spike it clears it by 1.7 − 1.4 = 0.3 mm (its axis
+    1.7 mm above the spike's tip), and that is what the check finds (to 10 µm) and warns of."""
+    protocol = load_protocol(
+        _phantom_protocol(
+            tmp_path,
+            "boundaries:\n  a:\n    - points: [[-30, -15], [-1, -15], [0, -7.7], [1, -15], "
+            "[30, -15]]\n  b:\n    - points: [[30, -15], [30, 15], [-30, 15], [-30, -15]]\n"
+            "path:\n  - points: [[-20, -6], [20, -6]]\n",
+        )
+    )
+    scene = build_scene(protocol)
+    space = free_space_of(scene, protocol.robot_params())
+    assert space.clearances(scene.reference.poses, ["a"]).min() == pytest.approx(1e-3, abs=1e-9)
+    clear = path_clearance(scene, space)
+    assert clear is not None
+    assert clear.least == pytest.approx(0.3e-3, abs=10e-6)
+    assert abs(clear.position[0]) <= 6.6e-3 + 10e-6  # the body's axis over the spike
+    assert clear.position[1] == pytest.approx(-6e-3, abs=1e-9)
+    warned: list[str] = []
+    check_system(protocol, feasibility=False, warn=warned.append)
+    assert len(warned) == 1, warned
+    assert "comes within 0.30 mm" in warned[0], warned
+
+
 def test_a_trajectory_leaving_the_workspace_is_refused(tmp_path: Path) -> None:
     protocol = tmp_path / "p.yaml"
     protocol.write_text(
