@@ -707,6 +707,15 @@ def _spawned_children(pid: int) -> int:
     return count
 
 
+def _cpu_seconds(pid: int) -> float:
+    """CPU time, s, that process ``pid`` has used so far (Linux /proc; 0 once it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
 def _as_from_a_terminal() -> None:
     """A child as a terminal starts it: SIGINT at its default (a test run from a script in
     the background inherits it ignored) and its own process group, for the Ctrl-C."""
@@ -741,7 +750,14 @@ def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(
     )  # fmt: skip
     manifest = out / "tiny" / "manifest.json"
     if moment == "importing":
-        time.sleep(0.2)
+        # past the interpreter's own start-up (its site module, under 0.1 s of CPU: a Ctrl-C
+        # there is CPython's "Fatal Python error", before any of magrun runs) and into
+        # magrun's imports (seconds of CPU): counted in the child's CPU time, not the wall
+        # clock, which a loaded machine stretches
+        deadline = time.monotonic() + 120
+        while _cpu_seconds(proc.pid) < 0.3 and proc.poll() is None:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
     else:
         deadline = time.monotonic() + 120
         while _spawned_children(proc.pid) < 2 and time.monotonic() < deadline:
