@@ -7,7 +7,7 @@ import math
 import os
 from pathlib import Path
 from types import SimpleNamespace
-from typing import cast
+from typing import Any, cast
 
 import pytest
 
@@ -113,8 +113,8 @@ def test_the_planned_headings_and_the_reach_from_the_cache_are_the_computed_ones
     from test_capability import ROBOT, TRI
 
     from magrun.field.capability import held_reference
+    from magrun.field.lut import LookupTableFieldModel
     from magrun.field.mpem import import_mpem
-    from magrun.field.system import load_system
     from magrun.scene import s_trajectory
 
     (tmp_path / "tri.yaml").write_text(TRI)
@@ -124,9 +124,19 @@ def test_the_planned_headings_and_the_reach_from_the_cache_are_the_computed_ones
     for memory in ("_PLANNED", "_REACH"):
         monkeypatch.setattr(trial, memory, {})
     trial.check_reach(coils, reference, ROBOT)
+    computed = []  # what the linear programs gave, and for what
+
+    def held(model: Any, *args: Any) -> Any:
+        computed.append((model, args, held_reference(model, *args)))
+        return computed[-1][-1]
+
+    monkeypatch.setattr("magrun.field.capability.held_reference", held)
     planned, factor = trial.planned_reference(coils, reference, ROBOT)
     assert planned is not reference  # headings turned: the offsets matter
-    direct = held_reference(load_system(folder).models[1], ROBOT, coils.max_current, reference)
+    ((model, args, direct),) = computed
+    assert isinstance(model, LookupTableFieldModel)  # the system's own tables
+    assert model.coils.folder == coils.folder
+    assert args == (ROBOT, coils.max_current, reference)
     assert np.array_equal(planned.poses, direct.trajectory.poses)
     assert factor == direct.median_factor
     for memory in ("_PLANNED", "_REACH"):

@@ -71,24 +71,39 @@ def test_the_blocker_blocks(tmp_path) -> None:
     assert "ModuleNotFoundError: torch is blocked" in run.stderr
 
 
-def _main_job(env: dict[str, str], out: Path, figures: bool = True) -> list[dict[str, str]]:
-    """The README's main job, shortened to 2 s a trial, into ``out``: results.csv's rows
-    (written by ``magrun figures`` in ``env``, or without ``figures`` by the same analysis
-    in this process)."""
+#: the README's main job, shortened to 2 s a trial
+MAIN_JOB = ROOT / "protocols/rate_under_noise.yaml"
+SHORT = ("quick.duration_s=2",)
+
+
+def _main_job(env: dict[str, str], out: Path) -> list[dict[str, str]]:
+    """The README's main job, shortened, into ``out`` as ``magrun run`` and ``magrun
+    figures`` do it in ``env``: results.csv's rows."""
     run = _magrun(
-        env, "run", ROOT / "protocols/rate_under_noise.yaml", "--quick",
-        "--set", "quick.duration_s=2", "--out", out, cwd=out.parent,
+        env, "run", MAIN_JOB, "--quick", *(a for o in SHORT for a in ("--set", o)),
+        "--out", out, cwd=out.parent,
     )  # fmt: skip
     assert run.returncode == 0, run.stdout + run.stderr
     assert "blocked" not in run.stdout + run.stderr
-    if figures:
-        made = _magrun(env, "figures", out, cwd=out.parent)
-        assert made.returncode == 0, made.stdout + made.stderr
-    else:
-        import analysis
+    made = _magrun(env, "figures", out, cwd=out.parent)
+    assert made.returncode == 0, made.stdout + made.stderr
+    return _results(out)
 
-        (out / "figures").mkdir()
-        analysis.write_results(analysis.load(out), out / "figures" / "results.csv")
+
+def _main_job_here(out: Path) -> list[dict[str, str]]:
+    """The same run in this process (`magrun run`'s :func:`run_protocol`) and its results
+    table (`magrun figures`' :func:`analysis.write_results`)."""
+    import analysis
+    from magrun.protocol import load_protocol
+    from magrun.runner import run_protocol
+
+    run_protocol(load_protocol(MAIN_JOB, SHORT), out, quick=True)
+    (out / "figures").mkdir()
+    analysis.write_results(analysis.load(out), out / "figures" / "results.csv")
+    return _results(out)
+
+
+def _results(out: Path) -> list[dict[str, str]]:
     manifest = (out / "rate_under_noise" / "manifest.json").read_text()
     assert '"status": "ok"' in manifest
     assert '"failed"' not in manifest
@@ -99,11 +114,12 @@ def _main_job(env: dict[str, str], out: Path, figures: bool = True) -> list[dict
 def test_the_main_job_runs_tracks_and_makes_its_figures_without_torch(tmp_path) -> None:
     """The main job where importing torch or onnx fails (in the run's worker processes
     too): camera tracking through the shipped graph, recordings, figures; and the same
-    results, to the last digit, as the same run in an environment with torch."""
+    results, to the last digit, as the same run in this process, where torch is imported."""
     from mcap.reader import make_reader
 
     lean = _main_job(_without_torch(tmp_path), tmp_path / "lean")
-    full = _main_job(dict(os.environ), tmp_path / "full", figures=False)
+    assert "torch" in sys.modules
+    full = _main_job_here(tmp_path / "full")
     assert [r["method"] for r in lean] == ["baseline2", "proposed"]
     columns = ["rms_position_mm", "rms_orientation_deg", "measurements", "tracking_lost"]
     assert [[r[c] for c in columns] for r in lean] == [[r[c] for c in columns] for r in full]

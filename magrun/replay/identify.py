@@ -344,6 +344,7 @@ def driven_currents(
     ones until then) and the amplifiers follow them as a first-order lag ``tau`` within the
     slew limit (:func:`magrun.rigs.plant.amplifier_path`; ``tau`` 0: the slew ramp alone).
     Returns, per tick, the (m, C) currents at the middle of its m sub-steps."""
+    from magrun.rigs.kernel import lag_path  # the plant's recurrence, compiled
     from magrun.rigs.plant import amplifier_path
 
     out = []
@@ -357,7 +358,7 @@ def driven_currents(
             if m <= 0:
                 continue
             if tau > 0:
-                path = amplifier_path(now, target, tau, slew_arr, h, m)
+                path = amplifier_path(now, target, tau, slew_arr, h, m, lag_path)
             else:
                 reach = np.arange(1, m + 1)[:, None] * (slew_arr * h)
                 path = np.where(
