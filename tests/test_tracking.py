@@ -552,6 +552,53 @@ def test_warm_up_runs_each_input_size_once_and_remembers_nothing(robots) -> None
             Tracker(graph_net(net), Camera(), robot, search_px=side)
 
 
+def test_a_process_loads_and_warms_a_weights_file_once_while_it_stays_the_same(
+    robots, tmp_path
+) -> None:
+    """Trial after trial in one process: the second tracker shares the first one's network
+    (the same run function) and skips the warm-up its sizes already had, keeps its own
+    state, and tracks a frame exactly as a network loaded afresh does. A rewritten weights
+    file is read again (its modification time), and a damaged one is refused, never served
+    from memory."""
+    import os
+    import shutil
+
+    robot = robots["magnet"]
+    shipped = default_weights_path()
+    path = tmp_path / "unet.npz"
+    shutil.copy(shipped, path)
+    shutil.copy(shipped.with_suffix(".onnx"), path.with_suffix(".onnx"))
+    first = Tracker.default(Camera(), robot, weights=path)
+    first.warm_up()
+    first.last_pose = np.array([0.001, 0.0, 0.0])
+    second = Tracker.default(Camera(), robot, weights=path)
+    assert second._net is first._net
+    assert second.last_pose is None
+    ran: list[str] = []
+    second._in_window = lambda *args, **kwargs: ran.append("window")
+    second._search = lambda *args, **kwargs: ran.append("frame")
+    second.warm_up()
+    assert ran == []  # the shared network's sizes were warmed: nothing runs
+    del second._in_window, second._search
+    frame = Renderer(Camera(), robot, Walls.box(0.05), seed=2).render([0.004, -0.006, 0.7])
+    fresh = Tracker(graph_net(read_weights(path)), Camera(), robot)
+    a, b = second.track(frame), fresh.track(frame)
+    assert a.pose is not None
+    assert_array_equal(a.pose, b.pose)
+    assert_array_equal(a.keypoints, b.keypoints)
+
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # rewritten, same bytes
+    third = Tracker.default(Camera(), robot, weights=path)
+    assert third._net is not first._net
+    ran = _counting(third)
+    third.warm_up()
+    assert ran == [64, 128, 256]  # a new network: warmed again
+    path.write_bytes(b"not weights")
+    with pytest.raises(ValueError, match="not a readable weights file"):
+        Tracker.default(Camera(), robot, weights=path)
+
+
 def test_frames_at_another_scale_are_tracked(shipped, robots) -> None:
     """A 4.1 px/mm, 400 × 330 px camera (a lab's): resized to the model's scale internally,
     pose within 0.3 mm and 2°, keypoints reported in the frame's own pixels (within 1 px)."""

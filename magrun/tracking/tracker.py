@@ -64,6 +64,37 @@ def default_weights_path() -> Path:
     return Path(str(resources.files("magrun") / "tracking" / "data" / "unet.npz"))
 
 
+#: the networks :meth:`Tracker.default` loaded in this process (and their scale, px/mm), by
+#: :func:`_files_key`: a process that runs trial after trial (a campaign's worker) reads and
+#: checks a weights file and starts the runtime's session once, not once a trial
+_NETS: dict[tuple[object, ...], tuple[UNetNet, float]] = {}
+#: those networks' ``run`` functions, and which of them :meth:`Tracker.warm_up` has run on
+#: which sizes (the function, the working frame's size, the window and the wider window)
+_SHARED: set[object] = set()
+_WARM: set[tuple[object, ...]] = set()
+
+
+def _files_key(path: Path, backend: Backend) -> tuple[object, ...] | None:
+    """What identifies the network :meth:`Tracker.default` loads from ``path``: the weights
+    file and the graph beside it (path, size, modification time), the backend and the
+    inference threads; None where the weights cannot be looked at (reading them says why)."""
+    from magrun.tracking import inference
+
+    try:
+        resolved = path.resolve()
+        stat = resolved.stat()
+    except (OSError, RuntimeError):
+        return None
+    try:
+        graph = path.with_suffix(".onnx").stat()  # WeightsFile.graph_path
+        beside: tuple[int, int] | None = (graph.st_size, graph.st_mtime_ns)
+    except OSError:
+        beside = None
+    threads = inference._threads
+    return (str(path.absolute()), str(resolved), stat.st_size, stat.st_mtime_ns, beside, backend,
+            threads)  # fmt: skip
+
+
 def load_net(weights: WeightsFile, backend: Backend = "onnx") -> UNetNet:
     """The network of ``weights``: their ONNX graph (:func:`~magrun.tracking.inference.graph_net`);
     with torch installed, where no graph of theirs lies beside them, one exported in memory;
@@ -240,10 +271,21 @@ class Tracker:
     ) -> Tracker:
         """A tracker with the shipped weights (or those in ``weights``), run from their ONNX
         graph (``backend`` ``"torch"``: by torch). Raises ``ValueError`` (or its subclass
-        :class:`~magrun.tracking.inference.MissingGraph`) saying what is wrong with them."""
-        file = read_weights(weights if weights is not None else default_weights_path())
-        net = load_net(file, backend)
-        return cls(net, camera, robot, model_px_per_mm=file.px_per_mm)
+        :class:`~magrun.tracking.inference.MissingGraph`) saying what is wrong with them.
+        The network is loaded once in a process while its files stay as they are (a
+        rewritten file is read again); each tracker has its own state."""
+        path = Path(weights) if weights is not None else default_weights_path()
+        key = _files_key(path, backend)
+        if key is None or key not in _NETS:
+            file = read_weights(path)
+            loaded = (load_net(file, backend), file.px_per_mm)
+            if key is not None:
+                _NETS[key] = loaded
+                _SHARED.add(loaded[0].run)
+        else:
+            loaded = _NETS[key]
+        net, px_per_mm = loaded
+        return cls(net, camera, robot, model_px_per_mm=px_per_mm)
 
     def reset(self) -> None:
         """Forget the previous pose (a new trial)."""
@@ -288,13 +330,19 @@ class Tracker:
         """Run the network once on each input size tracking uses (the window, the wider
         window, the whole frame), so that the runtime's first-run work on a size (memory
         plans, allocations: ~10 ms for a whole frame here) happens now, before a control
-        loop, and not in its first ticks. The heat maps are discarded."""
+        loop, and not in its first ticks. The heat maps are discarded. A network that
+        :meth:`default` shares is warmed once a process for each set of sizes."""
+        sizes = (self._net, self._size, self.window_px, self.search_px)
+        if sizes in _WARM:  # a network this process shares, already run on these sizes
+            return
         blank = np.zeros((self._size[1], self._size[0], 3), dtype=np.uint8)
         pose = np.array([*self._work.center[:2], 0.0])
         self._in_window(blank, pose, searched=False)
         if self._wider_than_window(blank):
             self._in_window(blank, pose, searched=True, side=self.search_px)
         self._search(blank)
+        if self._net in _SHARED:
+            _WARM.add(sizes)
 
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
         return self._net(to_array(image))[0]
