@@ -27,7 +27,7 @@ or the tail-to-head span is not within 25 % of the robot's length.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -64,35 +64,38 @@ def default_weights_path() -> Path:
     return Path(str(resources.files("magrun") / "tracking" / "data" / "unet.npz"))
 
 
-#: the networks :meth:`Tracker.default` loaded in this process (and their scale, px/mm), by
-#: :func:`_files_key`: a process that runs trial after trial (a campaign's worker) reads and
-#: checks a weights file and starts the runtime's session once, not once a trial
-_NETS: dict[tuple[object, ...], tuple[UNetNet, float]] = {}
-#: those networks' ``run`` functions, and which of them :meth:`Tracker.warm_up` has run on
-#: which sizes (the function, the working frame's size, the window and the wider window)
-_SHARED: set[object] = set()
-_WARM: set[tuple[object, ...]] = set()
+@dataclass
+class _Loaded:
+    """A network :meth:`Tracker.default` loaded, with what it was loaded from."""
+
+    files: tuple[object, ...]  # the weights' and the graph's size and modification time
+    net: UNetNet
+    px_per_mm: float
+    #: the sizes :meth:`Tracker.warm_up` ran it on (its run function, the working frame's
+    #: size, the window and the wider window)
+    warmed: set[tuple[object, ...]] = field(default_factory=set)
 
 
-def _files_key(path: Path, backend: Backend) -> tuple[object, ...] | None:
-    """What identifies the network :meth:`Tracker.default` loads from ``path``: the weights
-    file and the graph beside it (path, size, modification time), the backend and the
-    inference threads; None where the weights cannot be looked at (reading them says why)."""
-    from magrun.tracking import inference
+#: the networks :meth:`Tracker.default` loaded in this process, one per weights file, backend
+#: and inference threads: a process that runs trial after trial (a campaign's worker) reads
+#: and checks a weights file and starts the runtime's session once, not once a trial
+_NETS: dict[tuple[str, Backend, int | None], _Loaded] = {}
 
+
+def _files(path: Path) -> tuple[object, ...] | None:
+    """The weights file's and the graph's beside it (:attr:`WeightsFile.graph_path`) size
+    and modification time; None where the weights cannot be looked at (reading them says
+    why)."""
     try:
-        resolved = path.resolve()
-        stat = resolved.stat()
-    except (OSError, RuntimeError):
+        weights = path.stat()
+    except OSError:
         return None
     try:
-        graph = path.with_suffix(".onnx").stat()  # WeightsFile.graph_path
+        graph = path.with_suffix(".onnx").stat()
         beside: tuple[int, int] | None = (graph.st_size, graph.st_mtime_ns)
     except OSError:
         beside = None
-    threads = inference._threads
-    return (str(path.absolute()), str(resolved), stat.st_size, stat.st_mtime_ns, beside, backend,
-            threads)  # fmt: skip
+    return weights.st_size, weights.st_mtime_ns, beside
 
 
 def load_net(weights: WeightsFile, backend: Backend = "onnx") -> UNetNet:
@@ -260,6 +263,9 @@ class Tracker:
             raise ValueError(f"search_px must be a multiple of {self.stride}, ≥ window_px")
         self.search_px = search_px
         self.last_pose: FloatArray | None = None
+        #: the sizes warm_up ran the network on (shared by the trackers of one network that
+        #: :meth:`default` loaded)
+        self._warmed: set[tuple[object, ...]] = set()
 
     @classmethod
     def default(
@@ -274,18 +280,21 @@ class Tracker:
         :class:`~magrun.tracking.inference.MissingGraph`) saying what is wrong with them.
         The network is loaded once in a process while its files stay as they are (a
         rewritten file is read again); each tracker has its own state."""
+        from magrun.tracking import inference
+
         path = Path(weights) if weights is not None else default_weights_path()
-        key = _files_key(path, backend)
-        if key is None or key not in _NETS:
+        key = (str(path.absolute()), backend, inference._threads)
+        files = _files(path)
+        loaded = _NETS.get(key)
+        if loaded is None or files is None or loaded.files != files:
+            _NETS.pop(key, None)
             file = read_weights(path)
-            loaded = (load_net(file, backend), file.px_per_mm)
-            if key is not None:
+            loaded = _Loaded(files or (), load_net(file, backend), file.px_per_mm)
+            if files is not None:
                 _NETS[key] = loaded
-                _SHARED.add(loaded[0].run)
-        else:
-            loaded = _NETS[key]
-        net, px_per_mm = loaded
-        return cls(net, camera, robot, model_px_per_mm=px_per_mm)
+        tracker = cls(loaded.net, camera, robot, model_px_per_mm=loaded.px_per_mm)
+        tracker._warmed = loaded.warmed
+        return tracker
 
     def reset(self) -> None:
         """Forget the previous pose (a new trial)."""
@@ -333,7 +342,7 @@ class Tracker:
         loop, and not in its first ticks. The heat maps are discarded. A network that
         :meth:`default` shares is warmed once a process for each set of sizes."""
         sizes = (self._net, self._size, self.window_px, self.search_px)
-        if sizes in _WARM:  # a network this process shares, already run on these sizes
+        if sizes in self._warmed:  # a network this process shares, already run on these
             return
         blank = np.zeros((self._size[1], self._size[0], 3), dtype=np.uint8)
         pose = np.array([*self._work.center[:2], 0.0])
@@ -341,8 +350,7 @@ class Tracker:
         if self._wider_than_window(blank):
             self._in_window(blank, pose, searched=True, side=self.search_px)
         self._search(blank)
-        if self._net in _SHARED:
-            _WARM.add(sizes)
+        self._warmed.add(sizes)
 
     def _heatmaps(self, image: U8) -> NDArray[np.float32]:
         return self._net(to_array(image))[0]
