@@ -79,3 +79,15 @@ def channel_grid(coils: CoilSystem, reference: ReferenceMaps) -> ChannelGrid:
 @pytest.fixture(scope="session")
 def magnet_robot() -> RobotParams:
     return load_robot("magnet")
+
+
+@pytest.fixture
+def uncompiled(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No C compilation in this test (``MAGRUN_COMPILE=0``, without its one-time warning):
+    for tests that build controllers only to check what they were built from (a model, a
+    limit, a setting), so a fresh cache does not compile a kernel that no tick runs. The
+    NMPC then holds CasADi's QP instead of the compiled kernel (magrun.control.nmpc.rti)."""
+    import magrun.compiled
+
+    monkeypatch.setenv("MAGRUN_COMPILE", "0")
+    monkeypatch.setattr(magrun.compiled, "_warned", True)

@@ -496,7 +496,7 @@ def test_import_comsol_writes_a_system_folder_a_protocol_runs_on(tmp_path: Path)
 
 
 def test_a_paper_kind_folder_plans_and_simulates_on_its_own_maps_fit_and_limits(
-    tmp_path: Path,
+    tmp_path: Path, uncompiled: None
 ) -> None:
     """A folder of the paper's kind (what ``import-comsol --out`` writes) holding maps twice
     the shipped ones, their fit (the shipped fit doubled: a least-squares fit is linear in

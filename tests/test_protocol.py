@@ -345,7 +345,7 @@ def test_latency_and_the_older_key_together_are_refused() -> None:
 @pytest.mark.parametrize(("protocol_file", "iterations", "step"),
                          [("spine.yaml", 6, 0.5), ("rate.yaml", 2, 1.0)])  # fmt: skip
 def test_the_corrective_iteration_settings_reach_the_nmpc(
-    protocol_file: str, iterations: int, step: float
+    protocol_file: str, iterations: int, step: float, uncompiled: None
 ) -> None:
     """controller.corrective_iterations and controller.corrective_step reach the proposed
     method's NMPC as the protocol declares them (the phantom protocols: 6 half steps) or as
@@ -366,7 +366,7 @@ def test_the_corrective_iteration_settings_reach_the_nmpc(
     ("sigma_deg", "mobility"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.003), (0.5, 0.003)]
 )
 def test_the_filter_state_settings_reach_the_proposed_methods_filter(
-    sigma_deg: float, mobility: float
+    sigma_deg: float, mobility: float, uncompiled: None
 ) -> None:
     """controller.kalman.heading_bias_sigma_deg builds the filter's bias state (random walk σ
     in rad per tick) and controller.kalman.mobility_sigma its mobility state (σ per tick):
