@@ -375,12 +375,19 @@ def test_bench_recorder_json(runner: CliRunner) -> None:
 
 
 def test_bench_sigkill_json(runner: CliRunner) -> None:
-    """One killed recording process, recovered: the figures add up, ≤ 1 s + 2 ticks lost."""
-    result = runner.invoke(cli, ["bench", "sigkill", "--kills", "1", "--json"])
+    """One killed recording process, recovered: the figures add up, ≤ 1 s + 2 ticks lost;
+    a kill window that is not 0 < MIN <= MAX exits 2."""
+    for window in (["0", "1"], ["2", "1"], ["1", "nan"]):
+        bad = runner.invoke(cli, ["bench", "sigkill", "--kill-after", *window])
+        assert bad.exit_code == 2, bad.output
+        assert "--kill-after" in bad.output
+    args = ["bench", "sigkill", "--kills", "1", "--kill-after", "1.2", "1.6", "--json"]
+    result = runner.invoke(cli, args)
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
     (run,) = doc["runs"]
-    assert run["ticks_logged"] > 25  # killed after ≥ 1 s of trial at 25.5 Hz
+    assert 1.2 <= run["killed_after_s"] <= 1.6
+    assert run["ticks_logged"] > 25  # killed after ≥ 1.2 s of trial at 25.5 Hz
     assert run["ticks_lost"] == run["ticks_logged"] - run["ticks_recovered"]
     assert 0 <= doc["max_trial_s_lost"] <= doc["flush_s"] + 2 * doc["tick_s"]
 
@@ -388,7 +395,8 @@ def test_bench_sigkill_json(runner: CliRunner) -> None:
 def test_bench_sigkill_process_writer_finishes_the_file(runner: CliRunner) -> None:
     """The writer outlives the killed loop: the file has its footer and holds every tick
     the loop handed over (one more if the kill fell between handing over and printing)."""
-    args = ["bench", "sigkill", "--kills", "1", "--writer", "process", "--json"]
+    args = ["bench", "sigkill", "--kills", "1", "--writer", "process", "--kill-after", "1", "2",
+            "--json"]  # fmt: skip
     result = runner.invoke(cli, args)
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)
@@ -445,10 +453,14 @@ def test_bench_campaign_json(runner: CliRunner, tmp_path: Path) -> None:
         assert not any(c.topic.startswith("/camera") for c in summary.channels.values())
 
 
-def test_bench_cluster_json(runner: CliRunner) -> None:
-    """One local one-node Ray cluster: the figures add up; bad sizes exit 2 before any."""
+def test_bench_cluster_json(runner: CliRunner, tmp_path: Path) -> None:
+    """One local one-node Ray cluster running two trials (the tiny protocol at one rate):
+    the figures add up; bad sizes exit 2 before any."""
     pytest.importorskip("ray")
-    tiny = Path(__file__).parent / "data" / "protocols" / "tiny.yaml"
+    text = (Path(__file__).parent / "data" / "protocols" / "tiny.yaml").read_text()
+    assert "tracking_rate_hz: [5, 25.5]" in text
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text(text.replace("tracking_rate_hz: [5, 25.5]", "tracking_rate_hz: [25.5]"))
     for nodes in ("0", "two", ""):
         bad = runner.invoke(cli, ["bench", "cluster", str(tiny), "--nodes", nodes])
         assert bad.exit_code == 2, bad.output
@@ -457,12 +469,12 @@ def test_bench_cluster_json(runner: CliRunner) -> None:
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output.strip().splitlines()[-1])
     row = doc["clusters"]["1"]
-    assert doc["trials"] == 4
+    assert doc["trials"] == 2
     assert row["failed"] == 0
     assert row["nodes_used"] == 1
     assert row["speedup"] == 1.0
     assert 0 < row["run_s"] < row["wall_s"]
-    assert row["trials_per_min"] == pytest.approx(4 / row["wall_s"] * 60)
+    assert row["trials_per_min"] == pytest.approx(2 / row["wall_s"] * 60)
     assert row["recordings_mb"] > 0
 
 

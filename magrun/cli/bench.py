@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -135,12 +136,25 @@ def bench_recorder(
     "--writer", type=click.Choice(["thread", "process"]), default="thread", show_default=True,
     help="The recorder's writer: in the killed process, or a child process that survives it.",
 )  # fmt: skip
+@click.option(
+    "--kill-after", "kill_after", type=(float, float), default=(1.0, 6.0), show_default=True,
+    metavar="MIN MAX",
+    help="Each kill comes a uniformly random time between MIN and MAX s after the recording"
+    " started (its chunks close every 1 s of trial).",
+)  # fmt: skip
 @JSON_OPTION
-def bench_sigkill(kills: int, seed: int, writer: str, as_json: bool) -> None:
+def bench_sigkill(
+    kills: int, seed: int, writer: str, kill_after: tuple[float, float], as_json: bool
+) -> None:
     """Recordings after SIGKILL: kill a recording process at random moments, recover, count."""
     from magrun.bench import sigkill
 
-    result = sigkill.bench_sigkill(kills=kills, seed=seed, writer=writer)
+    low, high = kill_after
+    if not (math.isfinite(low) and math.isfinite(high) and 0 < low <= high):
+        raise click.BadParameter(
+            f"{low:g} {high:g}: give MIN MAX in s with 0 < MIN <= MAX", param_hint="--kill-after"
+        )
+    result = sigkill.bench_sigkill(kills=kills, seed=seed, writer=writer, window=(low, high))
     _emit(result, sigkill.summary(result), as_json)
 
 
