@@ -89,19 +89,17 @@ def test_the_fallback_grid_holds_every_pose_that_fits_and_no_other(spine, where)
     centres = centres[fs.inside(centres)]
     grid = {(round(x / pitch), round(y / pitch), round(t * 16 / math.pi)) for x, y, t in
             fs._fitting}  # fmt: skip
-    fitting = np.asarray(fs._fitting)
+    fitting = np.asarray(fs._fitting)[::3]  # every third, and every third centre below
     kept = fs.clearances(fitting) - 0.001 * fs.radius
     assert np.all(kept > -1e-9), fitting[np.argmin(kept)]
-    k = np.arange(16)
-    poses = np.column_stack(
-        [np.repeat(centres, 16, axis=0), np.tile(k * math.pi / 16, len(centres))]
-    )  # fmt: skip
+    at = np.repeat(centres[::3], 16, axis=0)  # each centre at the 16 headings
+    headings = np.tile(np.arange(16), len(centres[::3]))
+    poses = np.column_stack([at, headings * math.pi / 16])
     margin = fs.clearances(poses) - 0.001 * fs.radius
     judged = np.abs(margin) >= 1e-9
     in_grid = np.array(
-        [(round(x / pitch), round(y / pitch), j) in grid
-         for (x, y), j in zip(np.repeat(centres, 16, axis=0), np.tile(k, len(centres)),
-                              strict=True)]
+        [(round(x / pitch), round(y / pitch), int(j)) in grid
+         for (x, y), j in zip(at, headings, strict=True)]
     )  # fmt: skip
     wrong = judged & (in_grid != (margin > 0))
     assert not np.any(wrong), poses[wrong][:5]
