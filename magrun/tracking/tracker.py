@@ -49,7 +49,7 @@ from magrun.tracking.inference import (
     to_array,
 )
 from magrun.tracking.keypoints import pose_from_keypoints
-from magrun.tracking.weights import WeightsFile, read_weights
+from magrun.tracking.weights import WeightsFile, graph_path_of, read_weights
 
 if TYPE_CHECKING:
     from magrun.tracking.unet import KeypointUNet
@@ -71,8 +71,8 @@ class _Loaded:
     files: tuple[object, ...]  # the weights' and the graph's size and modification time
     net: UNetNet
     px_per_mm: float
-    #: the sizes :meth:`Tracker.warm_up` ran it on (its run function, the working frame's
-    #: size, the window and the wider window)
+    #: the sizes :meth:`Tracker.warm_up` ran it on (the working frame's size, the window and
+    #: the wider window)
     warmed: set[tuple[object, ...]] = field(default_factory=set)
 
 
@@ -83,15 +83,14 @@ _NETS: dict[tuple[str, Backend, int | None], _Loaded] = {}
 
 
 def _files(path: Path) -> tuple[object, ...] | None:
-    """The weights file's and the graph's beside it (:attr:`WeightsFile.graph_path`) size
-    and modification time; None where the weights cannot be looked at (reading them says
-    why)."""
+    """The weights file's and its graph's (:func:`graph_path_of`) size and modification
+    time; None where the weights cannot be looked at (reading them says why)."""
     try:
         weights = path.stat()
     except OSError:
         return None
     try:
-        graph = path.with_suffix(".onnx").stat()
+        graph = graph_path_of(path).stat()
         beside: tuple[int, int] | None = (graph.st_size, graph.st_mtime_ns)
     except OSError:
         beside = None
@@ -341,8 +340,8 @@ class Tracker:
         plans, allocations: ~10 ms for a whole frame here) happens now, before a control
         loop, and not in its first ticks. The heat maps are discarded. A network that
         :meth:`default` shares is warmed once a process for each set of sizes."""
-        sizes = (self._net, self._size, self.window_px, self.search_px)
-        if sizes in self._warmed:  # a network this process shares, already run on these
+        sizes = (self._size, self.window_px, self.search_px)
+        if sizes in self._warmed:  # this network (shared in the process) ran on these
             return
         blank = np.zeros((self._size[1], self._size[0], 3), dtype=np.uint8)
         pose = np.array([*self._work.center[:2], 0.0])

@@ -27,6 +27,11 @@ MAX_LEVELS, MAX_WIDTH = 8, 1024
 DEFAULT_PX_PER_MM = 2.5
 
 
+def graph_path_of(weights: Path) -> Path:
+    """Where the ONNX graph of the weights file ``weights`` lies: beside it, suffix ``.onnx``."""
+    return weights.with_suffix(".onnx")
+
+
 @dataclass(frozen=True)
 class WeightsFile:
     """A weights file's arrays (parameter name → array, ``meta`` left out) and metadata."""
@@ -52,8 +57,8 @@ class WeightsFile:
 
     @property
     def graph_path(self) -> Path:
-        """Where the ONNX graph of these weights lies: beside them, suffix ``.onnx``."""
-        return self.path.with_suffix(".onnx")
+        """Where the ONNX graph of these weights lies (:func:`graph_path_of`)."""
+        return graph_path_of(self.path)
 
     def digest(self) -> str:
         """SHA-256 of the parameters (names, dtypes, shapes and values, by name)."""
