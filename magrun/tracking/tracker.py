@@ -71,8 +71,8 @@ class _Loaded:
     files: tuple[object, ...]  # the weights' and the graph's size and modification time
     net: UNetNet
     px_per_mm: float
-    #: the sizes :meth:`Tracker.warm_up` ran it on (the working frame's size, the window and
-    #: the wider window)
+    #: the sizes :meth:`Tracker.warm_up` ran it on (its run function, which a tracker may
+    #: wrap, the working frame's size, the window and the wider window)
     warmed: set[tuple[object, ...]] = field(default_factory=set)
 
 
@@ -340,8 +340,8 @@ class Tracker:
         plans, allocations: ~10 ms for a whole frame here) happens now, before a control
         loop, and not in its first ticks. The heat maps are discarded. A network that
         :meth:`default` shares is warmed once a process for each set of sizes."""
-        sizes = (self._size, self.window_px, self.search_px)
-        if sizes in self._warmed:  # this network (shared in the process) ran on these
+        sizes = (self._net, self._size, self.window_px, self.search_px)
+        if sizes in self._warmed:  # a network this process shares, already run on these
             return
         blank = np.zeros((self._size[1], self._size[0], 3), dtype=np.uint8)
         pose = np.array([*self._work.center[:2], 0.0])
