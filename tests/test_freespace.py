@@ -521,9 +521,10 @@ def _warm_in_the_spine(
     """An NMPC on the spine, its corridor's margins from a covariance, converged on a
     reference along the channel at ``radius`` around its centre (10.9 mm: 1 mm inside the
     anterior wall, the corridor active), and the next tick's predicted state, reference
-    and previous currents."""
+    and previous currents. The corridor's weight is the corridor tests' above (1e4), so a
+    session compiles one kernel for both (the weight is part of the kernel's code)."""
     robot = load_robots()["drug_delivery"]
-    cfg = NMPCConfig(soft_constraints="slack", first_tick_iterations=60)
+    cfg = NMPCConfig(soft_constraints="slack", first_tick_iterations=60, corridor_weight=1e4)
     nmpc = NMPC(model, robot, cfg, spine)
     if nmpc.backend.kernel is None:
         pytest.skip("the split needs the compiled kernel (no C compiler here)")
