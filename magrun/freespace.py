@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from magrun.phantom import point_to_segments, segment_distances, segments_cross
+from magrun.phantom import point_to_segments, segment_distances
 from magrun.scene import Walls, capsule_disks
 
 FloatArray = NDArray[np.float64]
@@ -432,11 +432,7 @@ class FreeSpace:
         for th in np.arange(headings) * math.pi / headings:
             axis = np.array([math.cos(th), math.sin(th)]) * self.half_axis
             p0, p1 = centres[pair] - axis, centres[pair] + axis
-            d = np.minimum.reduce([
-                point_to_segments(p0, a, b), point_to_segments(p1, a, b),
-                point_to_segments(a, p0, p1), point_to_segments(b, p0, p1),
-            ])  # fmt: skip
-            d = np.where(segments_cross(p0, p1, a, b), 0.0, d)
+            d = segment_distances(p0, p1, a, b)
             touching = np.zeros(len(centres), dtype=bool)
             touching[pair[d < limit]] = True
             ok = ~touching
@@ -539,11 +535,7 @@ class FreeSpace:
         step = max(1, pairs // len(a))
         for i in range(0, len(p), step):
             s0, s1 = e0[i : i + step, None], e1[i : i + step, None]  # (k, 1, 2)
-            d = np.minimum(point_to_segments(s0, a, b), point_to_segments(s1, a, b))
-            d = np.minimum(d, point_to_segments(a, s0, s1))  # the walls' ends to the axis
-            d = np.minimum(d, point_to_segments(b, s0, s1))
-            d = np.where(segments_cross(s0, s1, a, b), 0.0, d)  # proper crossings touch
-            out[i : i + step] = d.min(axis=1) - self.radius
+            out[i : i + step] = segment_distances(s0, s1, a, b).min(axis=1) - self.radius
         return out
 
     def clearance(self, pose: ArrayLike, names: list[str] | None = None) -> float:
@@ -558,5 +550,5 @@ class FreeSpace:
         u = np.clip(((p[0] - a[:, 0]) * ab[:, 0] + (p[1] - a[:, 1]) * ab[:, 1]) / ab2, 0, 1)
         centre = np.hypot(p[0] - a[:, 0] - u * ab[:, 0], p[1] - a[:, 1] - u * ab[:, 1])
         near = centre <= centre.min() + 2 * self.half_axis + 1e-12
-        segs = np.stack([a[near], a[near] + ab[near]], axis=1)
-        return float(segment_distances(ends[0], ends[1], segs).min() - self.radius)
+        d = segment_distances(ends[0], ends[1], a[near], a[near] + ab[near])
+        return float(d.min() - self.radius)

@@ -206,20 +206,19 @@ class Phantom:
         p = np.asarray(pose, dtype=np.float64)
         half = max(length / 2 - diameter / 2, 0.0)
         axis = np.array([math.cos(p[2]), math.sin(p[2])]) * half
-        d = segment_distances(p[:2] - axis, p[:2] + axis, segs)
+        d = segment_distances(p[:2] - axis, p[:2] + axis, segs[:, 0], segs[:, 1])
         return float(d.min() - diameter / 2)
 
 
-def segment_distances(p0: FloatArray, p1: FloatArray, segs: FloatArray) -> FloatArray:
-    """Distance between segment ``p0``–``p1`` and each segment of ``segs`` (n, 2, 2)."""
-    a, b = segs[:, 0], segs[:, 1]
+def segment_distances(p0: FloatArray, p1: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
+    """Distances between segments ``p0``–``p1`` and segments ``a``–``b`` (points (..., 2),
+    broadcast over leading axes): the least of each end's distance to the other segment, 0
+    where they properly cross. A segment of zero length is a point (its terms for the other
+    segment's ends are then those ends' distances to it, never below the point's own)."""
     d = np.minimum(point_to_segments(p0, a, b), point_to_segments(p1, a, b))
-    if not np.allclose(p0, p1):
-        one_a, one_b = p0[None, :], p1[None, :]
-        d = np.minimum(d, point_to_segments(a, one_a, one_b))
-        d = np.minimum(d, point_to_segments(b, one_a, one_b))
-        d = np.where(segments_cross(p0, p1, a, b), 0.0, d)  # proper crossings touch
-    return d
+    d = np.minimum(d, point_to_segments(a, p0, p1))
+    d = np.minimum(d, point_to_segments(b, p0, p1))
+    return np.where(segments_cross(p0, p1, a, b), 0.0, d)  # proper crossings touch
 
 
 def point_to_segments(p: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
