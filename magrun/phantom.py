@@ -202,11 +202,10 @@ class Phantom:
         Negative when the body overlaps it.
         """
         line = self.boundaries[self.critical]
-        segs = np.stack([line[:-1], line[1:]], axis=1)
         p = np.asarray(pose, dtype=np.float64)
         half = max(length / 2 - diameter / 2, 0.0)
         axis = np.array([math.cos(p[2]), math.sin(p[2])]) * half
-        d = segment_distances(p[:2] - axis, p[:2] + axis, segs[:, 0], segs[:, 1])
+        d = segment_distances(p[:2] - axis, p[:2] + axis, line[:-1], line[1:])
         return float(d.min() - diameter / 2)
 
 

@@ -742,8 +742,8 @@ def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(
     import time
 
     out = tmp_path / "out"
-    command = [sys.executable, "-m", "magrun.console", "run", str(TINY), "--out", str(out),
-               "--jobs", "2"]  # fmt: skip
+    run = [sys.executable, "-m", "magrun.console", "run", str(TINY), "--out", str(out)]
+    command = [*run, "--jobs", "2"]
     proc = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True, preexec_fn=_as_from_a_terminal,
@@ -779,7 +779,7 @@ def test_a_ctrl_c_at_any_moment_of_a_two_job_run_is_clean(
         # the folder the stopped run left, resumed (in the command's own process: the
         # workers' start is not what a resume checks)
         again = subprocess.run(
-            [*command[:-1], "1", "--resume"], capture_output=True, text=True, timeout=300
+            [*run, "--jobs", "1", "--resume"], capture_output=True, text=True, timeout=300
         )  # fmt: skip
         assert again.returncode == 0, again.stderr
         assert {e["status"] for e in json.loads(manifest.read_text())["trials"]} == {"ok"}
