@@ -11,7 +11,7 @@ while turning at ω it needs F = D(θ) v and τ = d_r ω, and to keep its headin
 field along its moment of at least B_min (the robot's ``min_aligned_field``). Each of these
 is linear in the currents, so for a pose, a velocity and a turn rate the largest speed factor
 s for which the currents can give ``F = s D(θ) v``, the torque and ``h · B ≥ B_min`` within
-each channel's limit is a linear program (scipy's HiGHS)::
+each channel's limit is a linear program (scipy's HiGHS, :mod:`magrun.field.lp`)::
 
     max s   s.t.  m Gᵀ(I) h − s D(θ) v = −m G₀ᵀ h,     m h⊥ · B(I) = d_r ω − m h⊥ · B₀,
                   h · B(I) ≥ B_min − h · B₀,           |I_k| ≤ I_max,k,    0 ≤ s ≤ s_cap
@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from magrun.field.lp import solve_lp
 from magrun.field.model import PlanarFieldModel
 from magrun.robot import RobotParams, drag_matrix
 from magrun.scene import Trajectory
@@ -138,23 +139,17 @@ def pose_capability(
     b_ub /= field_scale
     cost = np.zeros(n + 1)
     cost[n] = -1.0
-    # HiGHS through scipy's milp, every variable continuous: the LP linprog solves, by the
-    # same solver (on 5472 LPs of the shipped systems and protocols the same speed factors,
-    # bit for bit), in about half the time (linprog's input checks are most of a call).
-    # Imported here: scipy.optimize is a large part of a fresh process's start-up, and a
-    # process whose answers are in the machine's cache (magrun.answers) solves no LP
-    from scipy.optimize import Bounds, LinearConstraint, milp
-
-    result = milp(
+    x = solve_lp(
         cost,
-        constraints=LinearConstraint(
-            np.vstack([a_ub, a_eq]), np.r_[-np.inf, b_eq], np.r_[b_ub, b_eq]
-        ),
-        bounds=Bounds(np.r_[-limits, 0.0], np.r_[limits, SPEED_CAP]),
+        np.vstack([a_ub, a_eq]),
+        np.concatenate(([-np.inf], b_eq)),
+        np.concatenate((b_ub, b_eq)),
+        np.concatenate((-limits, [0.0])),
+        np.concatenate((limits, [SPEED_CAP])),
     )
-    if result.status != 0:
+    if x is None:
         return PoseCapability(math.nan, None)
-    return PoseCapability(float(result.x[n]), np.asarray(result.x[:n], dtype=np.float64))
+    return PoseCapability(float(x[n]), x[:n])
 
 
 def reachable(
