@@ -8,7 +8,7 @@ import pytest
 
 from magrun.field.grid import ChannelGrid
 from magrun.replay.identify import rollout_driven
-from magrun.replay.model import Segments, start_states, substep_each
+from magrun.replay.model import Segments, held_substeps, start_states, substep_each
 from magrun.robot import exponential_substep, load_robot
 
 ROBOT = load_robot("magnet")
@@ -60,6 +60,27 @@ def test_a_substep_of_each_starts_own_length_is_each_starts_substep() -> None:
         if h[i] == 0:
             assert np.array_equal(got, want)
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("count", [0, 1, 7])
+def test_held_substeps_compiled_are_the_python_substeps_repeated(count: int) -> None:
+    """The compiled loop (magrun.rigs.kernel.held_substeps) against substep_each called
+    ``count`` times with the same field: equal to rounding (1e-12 of each quantity's scale)
+    for starts of different lengths, and a start of length 0 keeps its state exactly."""
+    rng = np.random.default_rng(5)
+    n = 9
+    state = tuple(rng.normal(0, s, n) for s in (1e-3, 1e-3, 1.0, 1e-3, 1e-3, 0.5))
+    B, G = _field(np.column_stack(state[:2]), rng.uniform(-20, 20, (n, 8)))
+    h = np.array([1e-3, 2e-3, 0.5e-3, 1e-3, 0.0, 3e-3, 1.5e-3, 1e-3, 0.2e-3])
+    want = state
+    for _ in range(count):
+        want = substep_each(want, B, G, ROBOT, h)
+    got = held_substeps(state, B, G, ROBOT, h, count)
+    for k, scale in enumerate((1e-3, 1e-3, 1.0, 1e-3, 1e-3, 0.5)):
+        np.testing.assert_allclose(got[k], want[k], rtol=0, atol=1e-12 * scale * max(count, 1))
+        assert np.array_equal(got[k][4], state[k][4])
+    if count:  # the sub-steps moved the states: the comparison above is not of two copies
+        assert not np.allclose(got[3], state[3], rtol=0, atol=1e-9)
 
 
 def _segments(n_ticks: int, horizon: int) -> Segments:

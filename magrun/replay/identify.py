@@ -42,11 +42,11 @@ from magrun.replay.model import (
     Segments,
     errors_of,
     field_function,
+    held_substeps,
     recorded_system,
     rollout,
     segments_of,
     start_states,
-    substep_each,
 )
 
 FloatArray = NDArray[np.float64]
@@ -402,8 +402,7 @@ def rollout_driven(
             if gains is not None:
                 held = held * gains
             B, G = fld(np.column_stack(state[:2]), held)
-            for _ in range(hi - lo):
-                state = substep_each(state, B, G, robot, h)
+            state = held_substeps(state, B, G, robot, h, hi - lo)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings

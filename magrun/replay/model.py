@@ -174,8 +174,7 @@ def rollout(
         for held, duration in ((currents[k - 1], lag[k]), (currents[k], seg.length[k] - lag[k])):
             B, G = field(np.column_stack(state[:2]), held)
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
-            for _ in range(m):
-                state = substep_each(state, B, G, robot, duration / m)
+            state = held_substeps(state, B, G, robot, duration / m, m)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings
@@ -234,6 +233,32 @@ def prediction_errors(
         model=model, robot=protocol.robot, dt=seg.dt, starts=len(seg.starts), position_mm=pos,
         heading_deg=ang, wall_s=time.perf_counter() - t0,
     )  # fmt: skip
+
+
+def held_substeps(
+    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray, count: int
+) -> tuple[Any, ...]:
+    """:func:`substep_each` ``count`` times with (B, G) held, compiled
+    (:func:`magrun.rigs.kernel.held_substeps`; the same sub-step to rounding, tested against
+    it): the rollouts' inner loop, where NumPy's per-call overhead on arrays of a few hundred
+    starts is most of the time."""
+    from magrun.rigs.kernel import ROBOT_FIELDS
+    from magrun.rigs.kernel import held_substeps as compiled
+
+    if count <= 0:
+        return state
+    n = len(state[0])
+    vector = np.array([getattr(robot, f) for f in ROBOT_FIELDS], dtype=np.float64)
+    out = np.array(state, dtype=np.float64).reshape(6, n)
+    compiled(
+        out,
+        np.ascontiguousarray(np.broadcast_to(B, (2, n)), dtype=np.float64),
+        np.ascontiguousarray(np.broadcast_to(G, (2, 2, n)), dtype=np.float64),
+        vector,
+        np.ascontiguousarray(np.broadcast_to(h, (n,)), dtype=np.float64),
+        count,
+    )
+    return tuple(out)
 
 
 def substep_each(

@@ -167,6 +167,57 @@ def free_substeps(
 
 
 @njit(cache=True, nogil=True)
+def held_substeps(
+    state: FloatArray, B: FloatArray, G: FloatArray, robot: FloatArray, h: FloatArray,
+    count: int,
+) -> None:  # fmt: skip
+    """``count`` sub-steps for each of n states at once, each of its own length and under its
+    own field held throughout: the replay's open-loop rollouts from many starts
+    (:func:`magrun.replay.model.held_substeps`), the sub-step of :func:`free_substeps`.
+
+    Parameters
+    ----------
+    state : (6, n) float64
+        Rows ``(x, y, θ, vx, vy, ω)`` in m, rad, m/s, rad/s; updated in place.
+    B : (2, n) float64
+        The field ``(Bx, By)``, T, at each state.
+    G : (2, 2, n) float64
+        The gradient, ``G[k, l] = ∂B_k/∂x_l``, T/m.
+    robot : (6,) float64
+        :data:`ROBOT_FIELDS`.
+    h : (n,) float64
+        Each state's sub-step, s; a state with ``h ≤ 0`` is left as it is.
+    """
+    moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
+    for i in range(state.shape[1]):
+        hi = h[i]
+        if not hi > 0:
+            continue
+        h2, ea, eb, er, ka, kb, kr, k2r = _decays(robot, hi)
+        bx, by = B[0, i], B[1, i]
+        g00, g01, g10, g11 = G[0, 0, i], G[0, 1, i], G[1, 0, i], G[1, 1, i]
+        x, y, th = state[0, i], state[1, i], state[2, i]
+        vx, vy, om = state[3, i], state[4, i], state[5, i]
+        for _ in range(count):
+            c_, s_ = math.cos(th), math.sin(th)
+            ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
+            mx, my = moment * c_, moment * s_
+            ur = (mx * by - my * bx) / d_r
+            th_half = th + (ur * h2 + (om - ur) * k2r)
+            mx, my = moment * math.cos(th_half), moment * math.sin(th_half)
+            fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
+            fa, fb = c_ * fx + s_ * fy, -s_ * fx + c_ * fy
+            ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
+            ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * hi + (ua - ua_ss) * ka
+            ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * hi + (ub - ub_ss) * kb
+            om1, dth = ur + (om - ur) * er, ur * hi + (om - ur) * kr
+            x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
+            vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+        state[0, i], state[1, i], state[2, i] = x, y, th
+        state[3, i], state[4, i], state[5, i] = vx, vy, om
+
+
+@njit(cache=True, nogil=True)
 def contact_substeps(
     state: FloatArray,
     drives: FloatArray,
