@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from magrun.field.grid import ChannelGrid
-from magrun.replay.identify import rollout_driven
+from magrun.replay.identify import driven_currents, rollout_driven
 from magrun.replay.model import Segments, held_substeps, start_states, substep_each
+from magrun.rigs import kernel
+from magrun.rigs.plant import amplifier_path, driven_midpoints
 from magrun.robot import exponential_substep, load_robot
 
 ROBOT = load_robot("magnet")
@@ -123,3 +125,57 @@ def test_rollouts_from_every_start_at_once_are_each_starts_rollout(uneven: bool)
                 positions[j, i], [state[0][0], state[1][0]], rtol=0, atol=1e-12
             )
             np.testing.assert_allclose(headings[j, i], state[2][0], rtol=0, atol=1e-9)
+
+
+def _driven_tick_by_tick(
+    commanded: np.ndarray, length: np.ndarray, latency: np.ndarray, slew: np.ndarray, tau: float
+) -> list[np.ndarray]:
+    """driven_currents' definition written out: each tick's two parts (the previous currents
+    for its latency, then its own) through the plant's amplifier_path, or the slew ramp
+    where tau is 0, and the mean of each sub-step's two ends."""
+    h, now, out = 1e-3, np.zeros(commanded.shape[1]), []
+    for k in range(len(commanded)):
+        rows = []
+        previous = commanded[k - 1] if k > 0 else np.zeros_like(now)
+        for target, duration in ((previous, latency[k]), (commanded[k], length[k] - latency[k])):
+            m = round(duration / h)
+            if m <= 0:
+                continue
+            if tau > 0:
+                path = amplifier_path(now, target, tau, slew, h, m)
+            else:
+                reach = np.arange(1, m + 1)[:, None] * (slew * h)
+                gap = target - now
+                path = np.where(np.abs(gap) <= reach, target, now + np.sign(gap) * reach)
+            rows.append(0.5 * (np.vstack([now[None], path[:-1]]) + path))
+            now = path[-1]
+        out.append(np.vstack(rows) if rows else np.zeros((0, len(now))))
+    return out
+
+
+@pytest.mark.parametrize("tau", [0.0, 4e-3, 0.03])
+def test_driven_currents_are_the_amplifier_path_tick_by_tick(tau: float) -> None:
+    """The compiled loop over a recording's ticks against each tick's parts through the
+    plant's own amplifier_path, bit for bit: measured tick lengths and latencies (one
+    latency longer than its tick, one tick of no sub-step), slew limits per channel that
+    bind on the larger steps; and the same loop in Python gives the same bits."""
+    rng = np.random.default_rng(6)
+    n, channels = 60, 8
+    commanded = rng.uniform(-20, 20, (n, channels))
+    length = 1 / 25.5 + rng.normal(0, 2e-3, n)
+    latency = rng.uniform(0.0, 0.01, n)
+    latency[7], length[9], latency[9] = length[7] + 0.002, 0.0002, 0.0
+    slew = rng.uniform(200, 2000, channels)
+    got = driven_currents(commanded, length, latency, slew, tau)
+    want = _driven_tick_by_tick(commanded, length, latency, slew, tau)
+    assert [len(g) for g in got] == [len(w) for w in want]
+    assert len(got[9]) == 0
+    assert len(got[7]) == round(latency[7] / 1e-3)
+    for g, w in zip(got, want, strict=True):
+        assert np.array_equal(g, w)
+    counts = np.column_stack([np.round(latency / 1e-3), np.round((length - latency) / 1e-3)])
+    counts = np.maximum(counts, 0).astype(np.int64)
+    decay = -np.expm1(-1e-3 / tau) if tau else 0.0
+    args = (commanded, counts, decay, slew * 1e-3, not tau)
+    assert np.array_equal(driven_midpoints(*args), kernel.driven_midpoints(*args))
+    assert np.any(np.abs(np.diff(np.vstack(got), axis=0)) >= slew * 1e-3 * (1 - 1e-12))

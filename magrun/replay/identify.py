@@ -343,32 +343,20 @@ def driven_currents(
     commanded currents (n, C) apply ``latency`` (n,) after their tick's start (the previous
     ones until then) and the amplifiers follow them as a first-order lag ``tau`` within the
     slew limit (:func:`magrun.rigs.plant.amplifier_path`; ``tau`` 0: the slew ramp alone).
-    Returns, per tick, the (m, C) currents at the middle of its m sub-steps."""
-    from magrun.rigs.kernel import lag_path  # the plant's recurrence, compiled
-    from magrun.rigs.plant import amplifier_path
+    Returns, per tick, the (m, C) currents at the middle of its m sub-steps (compiled:
+    :func:`magrun.rigs.plant.driven_midpoints`)."""
+    from magrun.rigs.kernel import driven_midpoints
 
-    out = []
-    now = np.zeros(commanded.shape[1])
-    slew_arr = np.broadcast_to(np.asarray(slew, dtype=np.float64), now.shape)
-    for k in range(len(commanded)):
-        rows = []
-        previous = commanded[k - 1] if k > 0 else np.zeros_like(now)
-        for target, duration in ((previous, latency[k]), (commanded[k], length[k] - latency[k])):
-            m = round(duration / h)
-            if m <= 0:
-                continue
-            if tau > 0:
-                path = amplifier_path(now, target, tau, slew_arr, h, m, lag_path)
-            else:
-                reach = np.arange(1, m + 1)[:, None] * (slew_arr * h)
-                path = np.where(
-                    np.abs(target - now) <= reach, target, now + np.sign(target - now) * reach
-                )
-            before = np.vstack([now[None], path[:-1]])
-            rows.append(0.5 * (before + path))
-            now = path[-1]
-        out.append(np.vstack(rows) if rows else np.zeros((0, len(now))))
-    return out
+    commanded = np.asarray(commanded, dtype=np.float64)
+    counts = np.column_stack([np.round(latency / h), np.round((length - latency) / h)])
+    counts = np.maximum(counts, 0).astype(np.int64)
+    limit = np.ascontiguousarray(
+        np.broadcast_to(np.asarray(slew, dtype=np.float64), commanded.shape[1:]) * h
+    )
+    decay = -math.expm1(-h / tau) if tau > 0 else 0.0
+    flat = driven_midpoints(np.ascontiguousarray(commanded), counts, decay, limit, not tau > 0)
+    ends = np.cumsum(counts.sum(axis=1))
+    return np.split(flat, ends[:-1])
 
 
 def rollout_driven(

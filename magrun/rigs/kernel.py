@@ -45,6 +45,9 @@ _relaxation = njit(cache=True, nogil=True, inline="always")(relaxation)
 #: a loop over a tick's sub-steps, which costs the interpreter more than its arithmetic
 lag_path = njit(cache=True, nogil=True)(plant.lag_path)
 ou_path = njit(cache=True, nogil=True)(plant.ou_path)
+#: what the amplifiers drive over a recording's ticks (:func:`magrun.rigs.plant.
+#: driven_midpoints`), compiled: the replay's identification of the amplifiers' lag
+driven_midpoints = njit(cache=True, nogil=True)(plant.driven_midpoints)
 
 
 @njit(cache=True, nogil=True, inline="always")

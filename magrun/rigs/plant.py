@@ -321,6 +321,50 @@ def lag_path(
     return out
 
 
+def driven_midpoints(
+    commanded: FloatArray, counts: NDArray[np.int64], decay: float, limit: FloatArray, ramp: bool
+) -> FloatArray:
+    """What the amplifiers drive over a run of ticks, sub-step by sub-step, from rest: tick k
+    holds the previous tick's commanded currents (n, channels; zero before the first) for
+    ``counts[k, 0]`` sub-steps (its latency), then its own for ``counts[k, 1]``. The
+    amplifiers follow :func:`lag_path`'s recurrence (``decay`` 1 − e^(−h/τ), ``limit`` the
+    slew limit times h, per channel) or, with ``ramp``, the slew ramp alone (after j
+    sub-steps toward I*, within j·limit of where they started). Returns the currents at the
+    middle of each sub-step, the mean of its two ends: (Σ counts, channels), tick by tick.
+    Written for Numba too, as :func:`lag_path` (:mod:`magrun.rigs.kernel`)."""
+    n, channels = commanded.shape
+    total = 0
+    for k in range(n):
+        total += max(counts[k, 0], 0) + max(counts[k, 1], 0)
+    out = np.empty((total, channels))
+    now = np.zeros(channels)
+    row = 0
+    for k in range(n):
+        for part in range(2):
+            m = counts[k, part]
+            if m <= 0:
+                continue
+            if part == 1:
+                target = commanded[k]
+            elif k > 0:
+                target = commanded[k - 1]
+            else:
+                target = np.zeros(channels)
+            before = now
+            for j in range(1, m + 1):
+                if ramp:
+                    reach = j * limit
+                    gap = target - now
+                    after = np.where(np.abs(gap) <= reach, target, now + np.sign(gap) * reach)
+                else:
+                    after = before + np.clip((target - before) * decay, -limit, limit)
+                out[row] = 0.5 * (before + after)
+                before = after
+                row += 1
+            now = before
+    return out
+
+
 def ou_path(value: FloatArray, a: float, b: float, xi: FloatArray) -> FloatArray:
     """:class:`OrnsteinUhlenbeck`'s recurrence ``v ← v·a + b·ξₖ`` over the rows of ``xi``
     from ``value``, (n, dims). Written for Numba too, as :func:`lag_path`."""
