@@ -3,12 +3,23 @@ identify) against the same computation one start at a time."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from test_emns import SYNTHETIC
 
 from magrun.field.grid import ChannelGrid
+from magrun.field.mpem import import_mpem
+from magrun.field.system import load_system
 from magrun.replay.identify import driven_currents, rollout_driven
-from magrun.replay.model import Segments, held_substeps, start_states, substep_each
+from magrun.replay.model import (
+    Segments,
+    field_function,
+    held_substeps,
+    start_states,
+    substep_each,
+)
 from magrun.rigs import kernel
 from magrun.rigs.plant import amplifier_path, driven_midpoints
 from magrun.robot import exponential_substep, load_robot
@@ -40,6 +51,36 @@ def test_units_at_many_positions_are_unit_at_each(grid: ChannelGrid) -> None:
     one_by_one = np.stack([grid.unit(x, y) for x, y in points])
     scale = np.max(np.abs(one_by_one))
     np.testing.assert_allclose(many, one_by_one, rtol=0, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize("background", [False, True])
+def test_the_replays_gridded_field_is_the_grids_own_read(background: bool, tmp_path: Path) -> None:
+    """The replay's 'reference' field (the plant's bilinear read, compiled) against the
+    grid's own :meth:`~ChannelGrid.units` contracted with its inputs, each position with its
+    own currents, inside the grid and beyond its edges (1e-12 of the largest value): on the
+    paper's rig and on three imported coils with a background field, whose column is read
+    at an input of 1 (with no current, the background's own field)."""
+    if background:
+        (tmp_path / "three.yaml").write_text(SYNTHETIC)
+        system = load_system(
+            import_mpem(tmp_path / "three.yaml", tmp_path / "s", 0.0, (0.0, 0.0), 10e-3)
+        )
+    else:
+        system = load_system(None)
+    grid = system.plant_maps
+    assert grid.background == background
+    rng = np.random.default_rng(7)
+    n, channels = 300, system.coils.n_channels
+    half = system.coils.workspace_half_width
+    positions = rng.uniform(-1.3 * half, 1.3 * half, (n, 2))
+    currents = rng.uniform(-5, 5, (n, channels))
+    currents[:10] = 0.0
+    B, G = field_function("reference", system)(positions, currents)
+    rows = np.einsum("nc,nck->nk", grid.inputs(currents), grid.units(positions))
+    got = np.column_stack([B.T, G.transpose(2, 0, 1).reshape(n, 4)])
+    np.testing.assert_allclose(got, rows, rtol=0, atol=1e-12 * np.abs(rows).max())
+    # with no current the field is the background's, or none
+    assert (np.abs(got[:10]).max() > 0) == background
 
 
 def test_a_substep_of_each_starts_own_length_is_each_starts_substep() -> None:

@@ -118,7 +118,7 @@ def identify(
     coils = system.coils
     fld = field_function(model, system)
     sets: dict[str, list[Segments]] = {"train": [], "test": []}
-    driven: dict[int, list[FloatArray]] = {}
+    driven: dict[int, HeldCurrents] = {}
     robots: set[tuple[str, str | None]] = set()
     for name, pairs in recorded.items():
         for rec, protocol in pairs:
@@ -128,9 +128,10 @@ def identify(
             seg = segments_of(rec, protocol, horizon)
             sets[name].append(seg)
             if amplifier_tau is not None:
-                driven[id(seg)] = driven_currents(
+                currents = driven_currents(
                     rec.currents, seg.length, seg.lag, coils.max_slew_rate, amplifier_tau
                 )  # fmt: skip
+                driven[id(seg)] = held_currents(seg, currents)
     if len(robots) != 1:
         names = ", ".join(sorted(name for name, _ in robots))
         raise ReplayError(f"the recordings are of different robots: {names}")
@@ -359,38 +360,61 @@ def driven_currents(
     return np.split(flat, ends[:-1])
 
 
-def rollout_driven(
-    seg: Segments, driven: list[FloatArray], robot: Any, fld: Any, gains: FloatArray | None,
-    part: int = 5,
-) -> tuple[FloatArray, FloatArray]:  # fmt: skip
-    """:func:`magrun.replay.model.rollout` with each tick's driven currents sub-step by
-    sub-step (:func:`driven_currents`): the field is read every ``part`` sub-steps at the
-    mean current of those sub-steps."""
-    starts = seg.starts
-    state = start_states(seg)
-    positions = np.empty((seg.horizon, len(starts), 2))
-    headings = np.empty((seg.horizon, len(starts)))
+@dataclass(frozen=True)
+class HeldCurrents:
+    """What :func:`rollout_driven` holds over each part of each tick, from the driven
+    currents (:func:`held_currents`): per horizon step, each start's sub-step (n,) s and,
+    part by part, each start's mean driven current (n, C) A with the part's number of
+    sub-steps. The same for every evaluation of a fit: computed once."""
+
+    h: list[FloatArray]
+    parts: list[list[tuple[FloatArray, int]]]
+
+
+def held_currents(seg: Segments, driven: list[FloatArray], part: int = 5) -> HeldCurrents:
+    """:class:`HeldCurrents` of ``seg``'s starts from :func:`driven_currents`' ``driven``:
+    every ``part`` sub-steps of the shortest of the starts' ticks, the mean current of those
+    sub-steps."""
     sizes = np.array([len(d) for d in driven])
+    steps, held = [], []
     for j in range(seg.horizon):
-        ks = starts + j
+        ks = seg.starts + j
         m = int(sizes[ks].min())
-        h = seg.length[ks] / sizes[ks]
+        steps.append(seg.length[ks] / sizes[ks])
         bounds = np.arange(0, m, part)
         means = None
         if m > 0 and np.all(sizes[ks] == m):  # every tick m sub-steps (a declared latency)
             stacked = np.stack([driven[k] for k in ks])  # (n, m, C): all parts' means at once
             counts = np.diff(np.append(bounds, m))[None, :, None]
             means = np.add.reduceat(stacked, bounds, axis=1) / counts
+        parts = []
         for c, lo in enumerate(bounds.tolist()):
             hi = min(lo + part, m)
             if means is not None:
-                held = means[:, c]
+                parts.append((means[:, c], hi - lo))
             else:  # ticks of different lengths (a measured latency): the first m sub-steps
-                held = np.stack([driven[k][lo:hi].mean(axis=0) for k in ks])
+                parts.append((np.stack([driven[k][lo:hi].mean(axis=0) for k in ks]), hi - lo))
+        held.append(parts)
+    return HeldCurrents(steps, held)
+
+
+def rollout_driven(
+    seg: Segments, driven: list[FloatArray] | HeldCurrents, robot: Any, fld: Any,
+    gains: FloatArray | None, part: int = 5,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """:func:`magrun.replay.model.rollout` with each tick's driven currents sub-step by
+    sub-step (:func:`driven_currents`, or their :func:`held_currents` already): the field is
+    read every ``part`` sub-steps at the mean current of those sub-steps."""
+    held = driven if isinstance(driven, HeldCurrents) else held_currents(seg, driven, part)
+    state = start_states(seg)
+    positions = np.empty((seg.horizon, len(seg.starts), 2))
+    headings = np.empty((seg.horizon, len(seg.starts)))
+    for j in range(seg.horizon):
+        for currents, count in held.parts[j]:
             if gains is not None:
-                held = held * gains
-            B, G = fld(np.column_stack(state[:2]), held)
-            state = held_substeps(state, B, G, robot, h, hi - lo)
+                currents = currents * gains
+            B, G = fld(np.column_stack(state[:2]), currents)
+            state = held_substeps(state, B, G, robot, held.h[j], count)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings

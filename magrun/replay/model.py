@@ -95,10 +95,19 @@ def field_function(model: str, system: System) -> Any:
 
         return analytic
     if model == "reference":
+        from magrun.rigs.kernel import grid_rows
+
         grid = system.plant_maps
+        table = np.ascontiguousarray(grid.table, dtype=np.float64)
 
         def gridded(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
-            rows = np.einsum("nc,nck->nk", currents, grid.units(positions))
+            # the plant's own bilinear read, compiled; the background's column (where the
+            # system has one) at an input of 1
+            rows = grid_rows(
+                np.ascontiguousarray(positions, dtype=np.float64),
+                np.ascontiguousarray(grid.inputs(currents)),
+                table, grid.x0, grid.y0, grid.step,
+            )  # fmt: skip
             return rows[:, :2].T, rows[:, 2:].reshape(-1, 2, 2).transpose(1, 2, 0)
 
         return gridded

@@ -170,6 +170,25 @@ def free_substeps(
 
 
 @njit(cache=True, nogil=True)
+def grid_rows(
+    positions: FloatArray, inputs: FloatArray, table: FloatArray, x0: float, y0: float,
+    step: float,
+) -> FloatArray:  # fmt: skip
+    """The field and gradient ``(Bx, By, g00, g01, g10, g11)`` at each of ``positions``
+    (n, 2) m for its own ``inputs`` (n, columns: the currents, A, and a 1 for a background
+    column), read from a :class:`~magrun.field.grid.ChannelGrid` table as the plant reads it
+    (:func:`_field_at`): (n, 6), T and T/m."""
+    n = positions.shape[0]
+    out = np.empty((n, 6))
+    v = np.empty(24)
+    for k in range(n):
+        row = _field_at(positions[k, 0], positions[k, 1], inputs, k, table, x0, y0, step, v)
+        for f in range(6):
+            out[k, f] = row[f]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def held_substeps(
     state: FloatArray, B: FloatArray, G: FloatArray, robot: FloatArray, h: FloatArray,
     count: int,
