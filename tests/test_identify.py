@@ -203,7 +203,7 @@ def test_identify_recovers_the_bench_timing_and_writes_a_plant_file(
 ) -> None:
     """Two 15 s trials of a bench with 30 ms frame age, a 15 ms amplifier lag and a tracker
     at 0.2 mm / 2°: `magrun identify --plant` recovers the frame age (from the measured
-    poses' time stamps: 30 ms to rounding) and the lag within 25 % (13.1 ms seen) and the
+    poses' time stamps: 30 ms to rounding) and the lag within 25 % (16.9 ms seen) and the
     tracker's noise within 10 % (0.200 mm, 2.01° seen), says what the age rests on, and
     writes them as a plant file that a protocol runs on."""
     from magrun.protocol import load_plant_file
