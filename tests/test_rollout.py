@@ -53,13 +53,16 @@ def test_units_at_many_positions_are_unit_at_each(grid: ChannelGrid) -> None:
     np.testing.assert_allclose(many, one_by_one, rtol=0, atol=1e-12 * scale)
 
 
+@pytest.mark.parametrize("compiled", [False, True])
 @pytest.mark.parametrize("background", [False, True])
-def test_the_replays_gridded_field_is_the_grids_own_read(background: bool, tmp_path: Path) -> None:
-    """The replay's 'reference' field (the plant's bilinear read, compiled) against the
-    grid's own :meth:`~ChannelGrid.units` contracted with its inputs, each position with its
-    own currents, inside the grid and beyond its edges (1e-12 of the largest value): on the
-    paper's rig and on three imported coils with a background field, whose column is read
-    at an input of 1 (with no current, the background's own field)."""
+def test_the_replays_gridded_field_is_the_grids_own_read(
+    background: bool, compiled: bool, tmp_path: Path
+) -> None:
+    """The replay's 'reference' field (NumPy, or the plant's bilinear read compiled) against
+    the grid's own :meth:`~ChannelGrid.units` contracted with its inputs, each position with
+    its own currents, inside the grid and beyond its edges (1e-12 of the largest value): on
+    the paper's rig and on three imported coils with a background field, whose column is
+    read at an input of 1 (with no current, the background's own field)."""
     if background:
         (tmp_path / "three.yaml").write_text(SYNTHETIC)
         system = load_system(
@@ -75,7 +78,7 @@ def test_the_replays_gridded_field_is_the_grids_own_read(background: bool, tmp_p
     positions = rng.uniform(-1.3 * half, 1.3 * half, (n, 2))
     currents = rng.uniform(-5, 5, (n, channels))
     currents[:10] = 0.0
-    B, G = field_function("reference", system)(positions, currents)
+    B, G = field_function("reference", system, compiled)(positions, currents)
     rows = np.einsum("nc,nck->nk", grid.inputs(currents), grid.units(positions))
     got = np.column_stack([B.T, G.transpose(2, 0, 1).reshape(n, 4)])
     np.testing.assert_allclose(got, rows, rtol=0, atol=1e-12 * np.abs(rows).max())

@@ -116,7 +116,7 @@ def identify(
     }
     system = recorded_system([p for pairs in recorded.values() for _, p in pairs])
     coils = system.coils
-    fld = field_function(model, system)
+    fld = field_function(model, system, compiled=True)
     sets: dict[str, list[Segments]] = {"train": [], "test": []}
     driven: dict[int, HeldCurrents] = {}
     robots: set[tuple[str, str | None]] = set()
@@ -146,7 +146,7 @@ def identify(
         robot = nominal.scaled(moment=force)
         if id(seg) in driven:
             return rollout_driven(seg, driven[id(seg)], robot, fld, gains)
-        return rollout(seg, robot, fld, gains)
+        return rollout(seg, robot, fld, gains, compiled=True)
 
     targets = [seg.targets for seg in sets["train"]]
 
@@ -449,7 +449,7 @@ def bench_timing(
     protocols = [trial_of(rec).protocol for rec in recs]
     system = recorded_system(protocols)
     coils = system.coils
-    fld = field_function(model, system)
+    fld = field_function(model, system, compiled=True)
     robot = protocols[0].robot_params().scaled(moment=force_factor)
     g = None if gains is None else np.array([gains[c] for c in coils.channel_names])
     segs = [segments_of(rec, p, 1) for rec, p in zip(recs, protocols, strict=True)]

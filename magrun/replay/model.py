@@ -82,9 +82,12 @@ def _wrap(a: Any) -> Any:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def field_function(model: str, system: System) -> Any:
+def field_function(model: str, system: System, compiled: bool = False) -> Any:
     """``f(positions (n, 2), currents (n, C)) -> (B, G)``, with ``B[k]`` and ``G[k][l]``
-    arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``system``."""
+    arrays of n (T, T/m), for one of :data:`MODELS` of the coil system ``system``. With
+    ``compiled``, the reference grid is read by the plant's compiled code
+    (:func:`magrun.rigs.kernel.grid_rows`; equal to rounding): for a fit's many rollouts, not
+    for one, where loading Numba (about a second) costs more than it saves."""
     if model in ("zernike", "lut"):
         zernike, lut = system.models
         planar = zernike if model == "zernike" else lut
@@ -95,19 +98,21 @@ def field_function(model: str, system: System) -> Any:
 
         return analytic
     if model == "reference":
-        from magrun.rigs.kernel import grid_rows
-
         grid = system.plant_maps
         table = np.ascontiguousarray(grid.table, dtype=np.float64)
 
         def gridded(positions: FloatArray, currents: FloatArray) -> tuple[Any, Any]:
-            # the plant's own bilinear read, compiled; the background's column (where the
-            # system has one) at an input of 1
-            rows = grid_rows(
-                np.ascontiguousarray(positions, dtype=np.float64),
-                np.ascontiguousarray(grid.inputs(currents)),
-                table, grid.x0, grid.y0, grid.step,
-            )  # fmt: skip
+            # the background's column (where the system has one) at an input of 1
+            inputs = grid.inputs(currents)
+            if compiled:  # the plant's own bilinear read
+                from magrun.rigs.kernel import grid_rows
+
+                rows = grid_rows(
+                    np.ascontiguousarray(positions, dtype=np.float64),
+                    np.ascontiguousarray(inputs), table, grid.x0, grid.y0, grid.step,
+                )  # fmt: skip
+            else:
+                rows = np.einsum("nc,nck->nk", inputs, grid.units(positions))
             return rows[:, :2].T, rows[:, 2:].reshape(-1, 2, 2).transpose(1, 2, 0)
 
         return gridded
@@ -167,10 +172,12 @@ def start_states(seg: Segments) -> tuple[Any, ...]:
 
 
 def rollout(
-    seg: Segments, robot: Any, field: Any, gains: FloatArray | None = None
-) -> tuple[FloatArray, FloatArray]:
+    seg: Segments, robot: Any, field: Any, gains: FloatArray | None = None,
+    compiled: bool = False,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
     """Open-loop predictions from every start: positions (K, n, 2) and headings (K, n) after
-    1 … K ticks. ``gains`` scale each channel's field per ampere (default 1)."""
+    1 … K ticks. ``gains`` scale each channel's field per ampere (default 1); ``compiled``:
+    the sub-steps compiled (:func:`held_substeps`), for a fit's many rollouts."""
     currents, lag, starts = seg.currents, seg.lag, seg.starts
     if gains is not None:
         currents = currents * gains  # a coil's gain scales its field per ampere
@@ -183,7 +190,7 @@ def rollout(
         for held, duration in ((currents[k - 1], lag[k]), (currents[k], seg.length[k] - lag[k])):
             B, G = field(np.column_stack(state[:2]), held)
             m = max(1, math.ceil(float(np.max(duration)) / SUBSTEP))
-            state = held_substeps(state, B, G, robot, duration / m, m)
+            state = held_substeps(state, B, G, robot, duration / m, m, compiled)
         positions[j] = np.column_stack(state[:2])
         headings[j] = state[2]
     return positions, headings
@@ -245,21 +252,26 @@ def prediction_errors(
 
 
 def held_substeps(
-    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray, count: int
-) -> tuple[Any, ...]:
-    """:func:`substep_each` ``count`` times with (B, G) held, compiled
-    (:func:`magrun.rigs.kernel.held_substeps`; the same sub-step to rounding, tested against
-    it): the rollouts' inner loop, where NumPy's per-call overhead on arrays of a few hundred
-    starts is most of the time."""
-    from magrun.rigs.kernel import ROBOT_FIELDS
-    from magrun.rigs.kernel import held_substeps as compiled
-
+    state: tuple[Any, ...], B: Any, G: Any, robot: Any, h: FloatArray, count: int,
+    compiled: bool = True,
+) -> tuple[Any, ...]:  # fmt: skip
+    """:func:`substep_each` ``count`` times with (B, G) held; ``compiled``
+    (:func:`magrun.rigs.kernel.held_substeps`, the same sub-step to rounding, tested against
+    it) where a fit runs the rollouts many times: NumPy's per-call overhead on arrays of a few
+    hundred starts is then most of the time."""
     if count <= 0:
         return state
+    if not compiled:
+        for _ in range(count):
+            state = substep_each(state, B, G, robot, h)
+        return state
+    from magrun.rigs.kernel import ROBOT_FIELDS
+    from magrun.rigs.kernel import held_substeps as loop
+
     n = len(state[0])
     vector = np.array([getattr(robot, f) for f in ROBOT_FIELDS], dtype=np.float64)
     out = np.array(state, dtype=np.float64).reshape(6, n)
-    compiled(
+    loop(
         out,
         np.ascontiguousarray(np.broadcast_to(B, (2, n)), dtype=np.float64),
         np.ascontiguousarray(np.broadcast_to(G, (2, 2, n)), dtype=np.float64),
