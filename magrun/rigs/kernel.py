@@ -94,6 +94,42 @@ def _field_at(
     return bx, by, g00, g01, g10, g11
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _substep(
+    motion: tuple[float, float, float, float, float, float],
+    field: tuple[float, float, float, float, float, float],
+    robot: FloatArray,
+    h: float,
+    decays: tuple[float, ...],
+) -> tuple[float, float, float, float, float, float]:
+    """One sub-step of ``h`` s from ``(x, y, θ, vx, vy, ω)`` under the field ``(Bx, By, g00,
+    g01, g10, g11)`` held (``g_kl = ∂B_k/∂x_l``): :func:`magrun.robot.exponential_substep` in
+    scalar form, ``decays`` its constants (:func:`_decays` of ``h``). The one compiled
+    sub-step of the plant (:func:`free_substeps`) and the replay (:func:`held_substeps`)."""
+    x, y, th, vx, vy, om = motion
+    bx, by, g00, g01, g10, g11 = field
+    moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
+    h2, ea, eb, er, ka, kb, kr, k2r = decays
+    c_, s_ = math.cos(th), math.sin(th)
+    ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
+    # the start wrench, a half step to the mid-step orientation
+    mx, my = moment * c_, moment * s_
+    tq = mx * by - my * bx
+    ur = tq / d_r
+    th_half = th + (ur * h2 + (om - ur) * k2r)
+    # the wrench at that orientation drives the full step from the start
+    mx, my = moment * math.cos(th_half), moment * math.sin(th_half)
+    fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
+    fa, fb = c_ * fx + s_ * fy, -s_ * fx + c_ * fy
+    ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
+    ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * h + (ua - ua_ss) * ka
+    ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * h + (ub - ub_ss) * kb
+    om1, dth = ur + (om - ur) * er, ur * h + (om - ur) * kr
+    x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
+    vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+    return x, y, th, vx, vy, om
+
+
 @njit(cache=True, nogil=True)
 def free_substeps(
     state: FloatArray,
@@ -136,30 +172,13 @@ def free_substeps(
         the clear disc and the caller must resolve contacts before resuming there).
     """
     n = drives.shape[0]
-    moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
-    h2, ea, eb, er, ka, kb, kr, k2r = _decays(robot, h)
+    decays = _decays(robot, h)
     x, y, th, vx, vy, om = state[0], state[1], state[2], state[3], state[4], state[5]
     v = np.empty(24)
     k = start
     while k < n:
-        bx, by, g00, g01, g10, g11 = _field_at(x, y, drives, k, table, x0, y0, step, v)
-        c_, s_ = math.cos(th), math.sin(th)
-        ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
-        # the start wrench, a half step to the mid-step orientation
-        mx, my = moment * c_, moment * s_
-        tq = mx * by - my * bx
-        ur = tq / d_r
-        th_half = th + (ur * h2 + (om - ur) * k2r)
-        # the wrench at that orientation drives the full step from the start
-        mx, my = moment * math.cos(th_half), moment * math.sin(th_half)
-        fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
-        fa, fb = c_ * fx + s_ * fy, -s_ * fx + c_ * fy
-        ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
-        ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * h + (ua - ua_ss) * ka
-        ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * h + (ub - ub_ss) * kb
-        om1, dth = ur + (om - ur) * er, ur * h + (om - ur) * kr
-        x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
-        vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+        field = _field_at(x, y, drives, k, table, x0, y0, step, v)
+        x, y, th, vx, vy, om = _substep((x, y, th, vx, vy, om), field, robot, h, decays)
         if trace.shape[0] > 0:
             trace[k, 0], trace[k, 1], trace[k, 2] = x, y, th
         k += 1
@@ -195,7 +214,7 @@ def held_substeps(
 ) -> None:  # fmt: skip
     """``count`` sub-steps for each of n states at once, each of its own length and under its
     own field held throughout: the replay's open-loop rollouts from many starts
-    (:func:`magrun.replay.model.held_substeps`), the sub-step of :func:`free_substeps`.
+    (:func:`magrun.replay.model.held_substeps`), the plant's sub-step (:func:`_substep`).
 
     Parameters
     ----------
@@ -210,31 +229,16 @@ def held_substeps(
     h : (n,) float64
         Each state's sub-step, s; a state with ``h ≤ 0`` is left as it is.
     """
-    moment, d_a, d_b, d_r = robot[0], robot[1], robot[2], robot[3]
     for i in range(state.shape[1]):
         hi = h[i]
         if not hi > 0:
             continue
-        h2, ea, eb, er, ka, kb, kr, k2r = _decays(robot, hi)
-        bx, by = B[0, i], B[1, i]
-        g00, g01, g10, g11 = G[0, 0, i], G[0, 1, i], G[1, 0, i], G[1, 1, i]
+        decays = _decays(robot, hi)
+        field = (B[0, i], B[1, i], G[0, 0, i], G[0, 1, i], G[1, 0, i], G[1, 1, i])
         x, y, th = state[0, i], state[1, i], state[2, i]
         vx, vy, om = state[3, i], state[4, i], state[5, i]
         for _ in range(count):
-            c_, s_ = math.cos(th), math.sin(th)
-            ua, ub = c_ * vx + s_ * vy, -s_ * vx + c_ * vy
-            mx, my = moment * c_, moment * s_
-            ur = (mx * by - my * bx) / d_r
-            th_half = th + (ur * h2 + (om - ur) * k2r)
-            mx, my = moment * math.cos(th_half), moment * math.sin(th_half)
-            fx, fy, tq = mx * g00 + my * g10, mx * g01 + my * g11, mx * by - my * bx
-            fa, fb = c_ * fx + s_ * fy, -s_ * fx + c_ * fy
-            ua_ss, ub_ss, ur = fa / d_a, fb / d_b, tq / d_r
-            ua1, sa = ua_ss + (ua - ua_ss) * ea, ua_ss * hi + (ua - ua_ss) * ka
-            ub1, sb = ub_ss + (ub - ub_ss) * eb, ub_ss * hi + (ub - ub_ss) * kb
-            om1, dth = ur + (om - ur) * er, ur * hi + (om - ur) * kr
-            x, y, th = x + c_ * sa - s_ * sb, y + s_ * sa + c_ * sb, th + dth
-            vx, vy, om = c_ * ua1 - s_ * ub1, s_ * ua1 + c_ * ub1, om1
+            x, y, th, vx, vy, om = _substep((x, y, th, vx, vy, om), field, robot, hi, decays)
         state[0, i], state[1, i], state[2, i] = x, y, th
         state[3, i], state[4, i], state[5, i] = vx, vy, om
 
