@@ -6,7 +6,7 @@ wrapper.
     min cᵀx   s.t.  lower ≤ A x ≤ upper,   lb ≤ x ≤ ub
 
 as :func:`scipy.optimize.milp` does with every variable continuous, and returns the same
-``x``, bit for bit (``tests/test_capability.py`` checks this on random LPs and on the
+``x``, bit for bit (``tests/test_lp.py`` checks this on random LPs and on the
 capability's own). The capability's LPs have four rows and a handful of columns; on those,
 milp's input checks, its sparse conversion and its option parsing are about two thirds of a
 call. Here the LP goes straight to the HiGHS solver object scipy builds on
@@ -119,6 +119,7 @@ def _solve_direct(
     lb: FloatArray,
     ub: FloatArray,
 ) -> FloatArray | None:
+    """:func:`solve_lp` through ``core``'s HiGHS object for this thread."""
     lp = core.HighsLp()
     n_rows, n_cols = a.shape
     lp.num_col_, lp.num_row_ = n_cols, n_rows

@@ -118,7 +118,7 @@ def identify(
     coils = system.coils
     fld = field_function(model, system, compiled=True)
     sets: dict[str, list[Segments]] = {"train": [], "test": []}
-    driven: dict[int, HeldCurrents] = {}
+    held: dict[int, HeldCurrents] = {}  # per segment, where the amplifiers' lag is given
     robots: set[tuple[str, str | None]] = set()
     for name, pairs in recorded.items():
         for rec, protocol in pairs:
@@ -131,7 +131,7 @@ def identify(
                 currents = driven_currents(
                     rec.currents, seg.length, seg.lag, coils.max_slew_rate, amplifier_tau
                 )  # fmt: skip
-                driven[id(seg)] = held_currents(seg, currents)
+                held[id(seg)] = held_currents(seg, currents)
     if len(robots) != 1:
         names = ", ".join(sorted(name for name, _ in robots))
         raise ReplayError(f"the recordings are of different robots: {names}")
@@ -144,8 +144,8 @@ def identify(
     def predict(p: FloatArray, seg: Segments) -> tuple[FloatArray, FloatArray]:
         force, gains = _unpack(p)
         robot = nominal.scaled(moment=force)
-        if id(seg) in driven:
-            return rollout_driven(seg, driven[id(seg)], robot, fld, gains)
+        if id(seg) in held:
+            return rollout_driven(seg, held[id(seg)], robot, fld, gains)
         return rollout(seg, robot, fld, gains, compiled=True)
 
     targets = [seg.targets for seg in sets["train"]]

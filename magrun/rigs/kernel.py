@@ -11,6 +11,10 @@ clear disc, so that the broad phase (Python, :class:`~magrun.rigs.sim.SimRig`) a
 where the Python plant runs them, and then resumes. ``SimRig(compiled=False)``, the Python
 plant, is the reference both are tested against (1e-12).
 
+The replay's identification (:mod:`magrun.replay.identify`) runs the same sub-step over many
+starts at once (:func:`held_substeps`), the grid's read for any positions (:func:`grid_rows`)
+and the amplifiers over a recording's ticks (:data:`driven_midpoints`).
+
 Numba caches the machine code on disk: under ``<magrun cache>/numba`` (see
 :func:`magrun.compiled.cache_dir`) unless ``NUMBA_CACHE_DIR`` is set. The first
 import on a machine compiles it (a few seconds); later processes load it.

@@ -350,11 +350,10 @@ def driven_midpoints(
                 target = commanded[k - 1]
             else:
                 target = np.zeros(channels)
-            before = now
+            before, gap = now, target - now
             for j in range(1, m + 1):
                 if ramp:
                     reach = j * limit
-                    gap = target - now
                     after = np.where(np.abs(gap) <= reach, target, now + np.sign(gap) * reach)
                 else:
                     after = before + np.clip((target - before) * decay, -limit, limit)
